@@ -1,0 +1,95 @@
+"""The environment as pure functions over explicit state (pgx style): a task, a state, candidates, a step.
+
+A state A_i is int16 labels per voxel of the shape (0 = remaining volume R_i, j = piece Pj) and i, the
+number of placed pieces. The first voxel of P1 is drawn uniformly from all voxels of R_0 (the paper
+leaves this open); later pieces start next to the previous piece.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rllock import fast
+from rllock.errors import RLLockError
+from rllock.reference import REMOVAL_MODES
+from rllock.shapes import load_shape, piece_size
+from rllock.topology import Topology, build_topology
+
+
+@dataclass(frozen=True, eq=False)
+class Task:
+    shape_name: str
+    topology: Topology
+    pieces: int  # K
+    removal: str  # "straight" or "path"
+
+    @property
+    def size(self) -> int:
+        """N, the shape's voxel count."""
+        return self.topology.size
+
+    @property
+    def piece_size(self) -> int:
+        """n = floor(N / K): the size of P1..P(K-1)."""
+        return self.size // self.pieces
+
+
+@dataclass(frozen=True, eq=False)
+class State:
+    labels: np.ndarray  # int16[N]
+    placed: int  # i: pieces P1..Pi are placed
+
+
+def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", name: str | None = None) -> Task:
+    if removal not in REMOVAL_MODES:
+        raise RLLockError(f"unknown removal mode {removal!r}: use one of {', '.join(REMOVAL_MODES)}")
+    grid = load_shape(shape) if isinstance(shape, str) else np.asarray(shape, dtype=bool)
+    piece_size(int(grid.sum()), pieces)
+    if pieces > np.iinfo(np.int16).max:
+        raise RLLockError(f"K = {pieces} is too many pieces")
+    label = name if name is not None else (shape if isinstance(shape, str) else "array")
+    return Task(label, build_topology(grid), pieces, removal)
+
+
+def initial_state(task: Task) -> State:
+    return State(np.zeros(task.size, dtype=np.int16), 0)
+
+
+def is_solved(task: Task, state: State) -> bool:
+    return state.placed == task.pieces - 1
+
+
+def apply_chunk(state: State, chunk: np.ndarray) -> State:
+    labels = state.labels.copy()
+    labels[chunk] = state.placed + 1
+    return State(labels, state.placed + 1)
+
+
+def final_labels(task: Task, state: State) -> np.ndarray:
+    """Labels 1..K of a solved state: the remaining volume becomes piece K."""
+    labels = state.labels.astype(np.int64)
+    labels[labels == 0] = task.pieces
+    return labels
+
+
+def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) -> np.ndarray:
+    """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n]."""
+    topo = task.topology
+    accepted, _ = fast.sample_and_check(
+        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, state.labels,
+        state.placed + 1, task.piece_size, num_samples, task.removal == "path", seed,
+    )
+    return accepted
+
+
+def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_candidates: int) -> np.ndarray:
+    """A node's candidate actions: up to `max_candidates` distinct accepted chunks, drawn uniformly
+    from the accepted ones among `num_samples` raw samples, each as sorted voxel numbers: int32[M, n].
+    An empty result means a dead end."""
+    accepted = sample_accepted(task, state, seed=seed, num_samples=num_samples)
+    unique = np.unique(np.sort(accepted, axis=1), axis=0)
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(unique))[:max_candidates]
+    return unique[order]

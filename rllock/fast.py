@@ -1,0 +1,345 @@
+"""The compiled inner loop: sample raw chunks for piece i of a state and run the three checkers.
+
+A state is per-voxel labels (int16[N]): 0 for the remaining volume R, j for piece Pj. The checkers
+here assume what every state reached through accepted chunks satisfies: R_(i-1) is connected and so
+are the placed pieces (chunks are connected by construction).
+
+Work per search node is split in two. `_prepare` runs once per node and builds incremental state:
+  - part_of[v]: blocking-graph node of each voxel (pieces 0..i-2, new piece i-1, R = i);
+  - ray_r[v, k]: how many R_(i-1) voxels lie strictly beyond v along direction k;
+  - base[a, p, q]: face contacts p -> q along +axis a in A_(i-1).
+Per chunk, the checks then cost O(n) (plus a BFS that stops once the cut is known to be bridged):
+  - removable along k iff sum over chunk voxels of ray_r == pairs of chunk voxels sharing a k-line,
+    because each such pair puts exactly one chunk voxel (a former R voxel) beyond the other;
+  - connected: R_i is connected iff all R_i voxels touching the chunk are in one component of R_i
+    (every R_i voxel reaches the chunk's boundary inside R_(i-1), so it reaches that component);
+  - interlocking: the contact counts of A_i are those of A_(i-1) with the chunk's contacts moved
+    from R to the new piece; then an SCC test per axis.
+Checks run cheapest first and stop at the first failure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+CONNECTED, REMOVABLE, INTERLOCKING = 1, 2, 4
+ALL_CHECKS = CONNECTED | REMOVABLE | INTERLOCKING
+
+
+@njit(cache=True)
+def _prepare(nbr, ray, labels, piece):
+    n_vox = labels.shape[0]
+    r_node = piece
+    n_parts = piece + 1
+    part_of = np.empty(n_vox, np.int32)
+    for v in range(n_vox):
+        part_of[v] = r_node if labels[v] == 0 else labels[v] - 1
+    seeds = np.empty(n_vox, np.int32)
+    n_seeds = 0
+    for v in range(n_vox):
+        if part_of[v] != r_node:
+            continue
+        if piece == 1:
+            seeds[n_seeds] = v
+            n_seeds += 1
+            continue
+        for k in range(6):
+            u = nbr[v, k]
+            if u >= 0 and labels[u] == piece - 1:
+                seeds[n_seeds] = v
+                n_seeds += 1
+                break
+    ray_r = np.zeros((n_vox, 6), np.int32)
+    for v in range(n_vox):
+        if part_of[v] != r_node:
+            continue
+        for k in range(6):
+            c = 0
+            u = ray[v, k]
+            while u >= 0:
+                if part_of[u] == r_node:
+                    c += 1
+                u = ray[u, k]
+            ray_r[v, k] = c
+    base = np.zeros((3, n_parts, n_parts), np.int32)
+    for v in range(n_vox):
+        p = part_of[v]
+        for a in range(3):
+            u = nbr[v, 2 * a]
+            if u >= 0 and part_of[u] != p:
+                base[a, p, part_of[u]] += 1
+    return part_of, seeds[:n_seeds], ray_r, base
+
+
+@njit(cache=True)
+def _sample_chunk(seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, front_mark, stamp):
+    s = seeds[np.random.randint(seeds.shape[0])]
+    chunk[0] = s
+    in_chunk[s] = stamp
+    nf = 0
+    v = s
+    for j in range(n):
+        if j > 0:
+            if nf == 0:
+                return False
+            pick = np.random.randint(nf)
+            v = front[pick]
+            nf -= 1
+            front[pick] = front[nf]
+            chunk[j] = v
+            in_chunk[v] = stamp
+        for k in range(6):
+            u = nbr[v, k]
+            if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp and front_mark[u] != stamp:
+                front_mark[u] = stamp
+                front[nf] = u
+                nf += 1
+    return True
+
+
+@njit(cache=True)
+def _straight_free(chunk, n, line, ray_r, line_count):
+    """Bitmask over the 6 directions along which the chunk slides out of R_i."""
+    free = 0
+    for a in range(3):
+        pairs = 0
+        for j in range(n):
+            lid = line[chunk[j], a]
+            pairs += line_count[lid]
+            line_count[lid] += 1
+        for j in range(n):
+            line_count[line[chunk[j], a]] = 0
+        for s in range(2):
+            k = 2 * a + s
+            total = 0
+            for j in range(n):
+                total += ray_r[chunk[j], k]
+            if total == pairs:
+                free |= 1 << k
+    return free
+
+
+@njit(cache=True)
+def _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, queue, stamp):
+    """R_i connected, given R_(i-1) connected: BFS in R_i until every R_i voxel touching the chunk
+    is reached. `mark` holds 2*stamp for boundary voxels and 2*stamp+1 once visited."""
+    boundary = 0
+    for j in range(n):
+        v = chunk[j]
+        for k in range(6):
+            u = nbr[v, k]
+            if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp and mark[u] != 2 * stamp:
+                mark[u] = 2 * stamp
+                queue[boundary] = u
+                boundary += 1
+    if boundary == 0:
+        return False
+    found = 1
+    head, tail = 0, 1
+    # The BFS reuses `queue` from slot 1 on: boundary voxels are remembered by `mark`, not the list.
+    mark[queue[0]] = 2 * stamp + 1
+    while head < tail and found < boundary:
+        v = queue[head]
+        head += 1
+        for k in range(6):
+            u = nbr[v, k]
+            if u < 0 or part_of[u] != r_node or in_chunk[u] == stamp:
+                continue
+            if mark[u] == 2 * stamp + 1:
+                continue
+            if mark[u] == 2 * stamp:
+                found += 1
+            mark[u] = 2 * stamp + 1
+            queue[tail] = u
+            tail += 1
+    return found == boundary
+
+
+@njit(cache=True)
+def _strongly_connected(counts, a, n_parts, skip):
+    """Whether the axis-a contact graph restricted to nodes != skip is strongly connected."""
+    start = 1 if skip == 0 else 0
+    for direction in range(2):
+        seen = np.zeros(n_parts, np.bool_)
+        stack = np.empty(n_parts, np.int32)
+        seen[start] = True
+        stack[0] = start
+        top = 1
+        reached = 1
+        while top > 0:
+            top -= 1
+            p = stack[top]
+            for q in range(n_parts):
+                if q == skip or seen[q]:
+                    continue
+                c = counts[a, p, q] if direction == 0 else counts[a, q, p]
+                if c > 0:
+                    seen[q] = True
+                    stack[top] = q
+                    top += 1
+                    reached += 1
+        if reached != n_parts - (1 if skip >= 0 else 0):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, counts, stamp):
+    n_parts = r_node + 1
+    new = r_node - 1
+    counts[:, :, :] = base
+    for j in range(n):
+        v = chunk[j]
+        for a in range(3):
+            u = nbr[v, 2 * a]  # v -> u along +a
+            if u >= 0 and in_chunk[u] != stamp:
+                q = part_of[u]
+                if q != r_node:
+                    counts[a, r_node, q] -= 1
+                counts[a, new, q] += 1
+            u = nbr[v, 2 * a + 1]  # u -> v along +a
+            if u >= 0 and in_chunk[u] != stamp:
+                q = part_of[u]
+                if q != r_node:
+                    counts[a, q, r_node] -= 1
+                counts[a, q, new] += 1
+    for a in range(3):
+        if not (_strongly_connected(counts, a, n_parts, -1) or _strongly_connected(counts, a, n_parts, 0)):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queue, stamp):
+    """DESIA's removability: BFS over integer offsets of collision-free unit moves until the chunk
+    is outside the canvas (equivalent to leaving R_i's bounding box: from there it slides away)."""
+    gx, gy, gz = index.shape
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = coords[chunk[0], a]
+        hi[a] = coords[chunk[0], a]
+    for j in range(1, n):
+        for a in range(3):
+            c = coords[chunk[j], a]
+            lo[a] = min(lo[a], c)
+            hi[a] = max(hi[a], c)
+    sx, sy, sz = 2 * gx + 1, 2 * gy + 1, 2 * gz + 1
+    queue[0] = (gx * sy + gy) * sz + gz  # offset (0, 0, 0)
+    visited[queue[0]] = stamp
+    head, tail = 0, 1
+    while head < tail:
+        code = queue[head]
+        head += 1
+        oz = code % sz - gz
+        oy = (code // sz) % sy - gy
+        ox = code // (sy * sz) - gx
+        if (hi[0] + ox < 0 or lo[0] + ox >= gx or hi[1] + oy < 0 or lo[1] + oy >= gy
+                or hi[2] + oz < 0 or lo[2] + oz >= gz):
+            return True
+        for k in range(6):
+            dx = (1 if k == 0 else -1 if k == 1 else 0) + ox
+            dy = (1 if k == 2 else -1 if k == 3 else 0) + oy
+            dz = (1 if k == 4 else -1 if k == 5 else 0) + oz
+            nxt = ((dx + gx) * sy + dy + gy) * sz + dz + gz
+            if visited[nxt] == stamp:
+                continue
+            visited[nxt] = stamp
+            blocked = False
+            for j in range(n):
+                x = coords[chunk[j], 0] + dx
+                y = coords[chunk[j], 1] + dy
+                z = coords[chunk[j], 2] + dz
+                if 0 <= x < gx and 0 <= y < gy and 0 <= z < gz:
+                    u = index[x, y, z]
+                    if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp:
+                        blocked = True
+                        break
+            if not blocked:
+                queue[tail] = nxt
+                tail += 1
+    return False
+
+
+@njit(cache=True)
+def _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path, full,
+           in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp):
+    """Bitmask of passed checks (CONNECTED | REMOVABLE | INTERLOCKING). With `full` false it stops at
+    the first failure and returns 0 for any rejected chunk."""
+    r_node = piece
+    result = 0
+    removable = _straight_free(chunk, n, line, ray_r, line_count) != 0
+    if not removable and not removal_path and not full:
+        return 0
+    connected = _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, queue, stamp)
+    if connected:
+        result |= CONNECTED
+    elif not full:
+        return 0
+    if piece == 1 or _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, counts, stamp):
+        result |= INTERLOCKING
+    elif not full:
+        return 0
+    if not removable and removal_path:
+        removable = _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, off_queue, stamp)
+    if removable:
+        result |= REMOVABLE
+    return result
+
+
+@njit(cache=True)
+def _scratch(n_vox, n_lines, n_parts, dims):
+    n_off = (2 * dims[0] + 1) * (2 * dims[1] + 1) * (2 * dims[2] + 1)
+    return (np.zeros(n_vox, np.int64), np.zeros(n_vox, np.int64), np.empty(n_vox, np.int32),
+            np.zeros(n_lines, np.int32), np.zeros((3, n_parts, n_parts), np.int32),
+            np.zeros(n_off, np.int64), np.empty(n_off, np.int64))
+
+
+@njit(cache=True)
+def sample_and_check(nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples,
+                     removal_path, seed):
+    """Sample `num_samples` raw chunks for piece `piece` and keep those the checkers accept.
+
+    Returns (accepted int32[k, n], k). Chunks that fail to grow to n voxels count as rejected.
+    """
+    np.random.seed(seed)
+    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
+    accepted = np.empty((num_samples, n), np.int32)
+    if seeds.shape[0] == 0:
+        return accepted[:0], 0
+    n_vox = labels.shape[0]
+    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
+        n_vox, n_lines, piece + 1, index.shape)
+    front_mark = np.zeros(n_vox, np.int64)
+    front = np.empty(n_vox, np.int32)
+    chunk = np.empty(n, np.int32)
+    k = 0
+    for s in range(num_samples):
+        stamp = s + 1
+        if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, stamp):
+            continue
+        verdict = _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
+                         False, in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp)
+        if verdict == ALL_CHECKS:
+            accepted[k, :] = chunk
+            k += 1
+    return accepted[:k], k
+
+
+@njit(cache=True)
+def check_chunks(nbr, ray, line, n_lines, coords, index, labels, piece, chunks, removal_path):
+    """Every check on every given chunk (no early exit): int32 bitmask per chunk. For testing."""
+    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
+    n_vox = labels.shape[0]
+    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
+        n_vox, n_lines, piece + 1, index.shape)
+    out = np.zeros(chunks.shape[0], np.int32)
+    n = chunks.shape[1]
+    for s in range(chunks.shape[0]):
+        stamp = s + 1
+        for j in range(n):
+            in_chunk[chunks[s, j]] = stamp
+        out[s] = _check(chunks[s], n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
+                        True, in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp)
+    return out

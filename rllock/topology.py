@@ -1,0 +1,66 @@
+"""Lookup tables over the voxels of one shape, in the compact voxel indexing the fast path uses.
+
+Voxels are numbered 0..N-1 in `np.argwhere` order of the `[x, y, z]` grid. Direction k is
+`reference.DIRECTIONS[k]` (+x, -x, +y, -y, +z, -z); the opposite of k is k ^ 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rllock.reference import DIRECTIONS
+
+
+@dataclass(frozen=True, eq=False)
+class Topology:
+    grid: np.ndarray  # bool[X, Y, Z]
+    coords: np.ndarray  # int32[N, 3]
+    index: np.ndarray  # int32[X, Y, Z]: voxel number, -1 where empty
+    nbr: np.ndarray  # int32[N, 6]: face neighbour in direction k, -1 if none
+    ray: np.ndarray  # int32[N, 6]: nearest voxel strictly beyond v along direction k, -1 if none
+    line: np.ndarray  # int32[N, 3]: id of the axis-a line through v (unique per axis)
+    n_lines: int
+
+    @property
+    def size(self) -> int:
+        return int(self.coords.shape[0])
+
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        return tuple(int(d) for d in self.grid.shape)  # type: ignore[return-value]
+
+    def to_grid(self, labels: np.ndarray) -> np.ndarray:
+        """Per-voxel values scattered into an int grid `[x, y, z]` (0 where the shape is empty)."""
+        out = np.zeros(self.grid.shape, dtype=np.int64)
+        out[tuple(self.coords.T)] = labels
+        return out
+
+    def from_grid(self, grid_values: np.ndarray) -> np.ndarray:
+        return np.asarray(grid_values)[tuple(self.coords.T)]
+
+
+def build_topology(grid: np.ndarray) -> Topology:
+    grid = np.asarray(grid, dtype=bool)
+    dims = np.array(grid.shape)
+    coords = np.argwhere(grid).astype(np.int32)
+    index = np.full(grid.shape, -1, dtype=np.int32)
+    index[tuple(coords.T)] = np.arange(len(coords), dtype=np.int32)
+    nbr = np.full((len(coords), 6), -1, dtype=np.int32)
+    ray = np.full((len(coords), 6), -1, dtype=np.int32)
+    for k, d in enumerate(DIRECTIONS):
+        step = np.array(d)
+        for t in range(int(dims.max()), 0, -1):
+            # Walk from far to near so the nearest voxel along the ray is written last.
+            target = coords + t * step
+            inside = np.all((target >= 0) & (target < dims), axis=1)
+            hit = np.full(len(coords), -1, dtype=np.int32)
+            hit[inside] = index[tuple(target[inside].T)]
+            ray[hit >= 0, k] = hit[hit >= 0]
+            if t == 1:
+                nbr[:, k] = hit
+    x, y, z = coords.T
+    line = np.stack([y * dims[2] + z, x * dims[2] + z, x * dims[1] + y], axis=1).astype(np.int32)
+    n_lines = int(max(dims[1] * dims[2], dims[0] * dims[2], dims[0] * dims[1]))
+    return Topology(grid, coords, index, nbr, ray, line, n_lines)
