@@ -88,8 +88,10 @@ def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_can
     """A node's candidate actions: up to `max_candidates` distinct accepted chunks, drawn uniformly
     from the accepted ones among `num_samples` raw samples, each as sorted voxel numbers: int32[M, n].
     An empty result means a dead end."""
-    accepted = sample_accepted(task, state, seed=seed, num_samples=num_samples)
+    return distinct_subset(sample_accepted(task, state, seed=seed, num_samples=num_samples), max_candidates, seed)
+
+
+def distinct_subset(accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """Up to `count` distinct chunks (as sorted voxel numbers) drawn uniformly from `accepted`."""
     unique = np.unique(np.sort(accepted, axis=1), axis=0)
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(len(unique))[:max_candidates]
-    return unique[order]
+    return unique[np.random.default_rng(seed).permutation(len(unique))[:count]]

@@ -343,3 +343,22 @@ def check_chunks(nbr, ray, line, n_lines, coords, index, labels, piece, chunks, 
         out[s] = _check(chunks[s], n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
                         True, in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp)
     return out
+
+
+@njit(cache=True)
+def sample_raw(nbr, ray, labels, piece, n, num_samples, seed):
+    """Unchecked raw chunks (those that grew to n voxels): int32[k, n]. For testing the sampler."""
+    np.random.seed(seed)
+    part_of, seeds, _, _ = _prepare(nbr, ray, labels, piece)
+    n_vox = labels.shape[0]
+    out = np.empty((num_samples, n), np.int32)
+    if seeds.shape[0] == 0:
+        return out[:0]
+    in_chunk = np.zeros(n_vox, np.int64)
+    front_mark = np.zeros(n_vox, np.int64)
+    front = np.empty(n_vox, np.int32)
+    k = 0
+    for s in range(num_samples):
+        if _sample_chunk(seeds, nbr, part_of, piece, n, out[k], in_chunk, front, front_mark, s + 1):
+            k += 1
+    return out[:k]

@@ -1,4 +1,5 @@
-"""Voxel shapes: built-in names and the DESIA `.puz`, High-Level `.vol` and `.npy` file formats.
+"""Voxel shapes: built-in names, the DESIA `.puz`, High-Level `.vol` and `.npy` file formats, and
+closed `.stl`/`.obj` meshes (voxelized by `rllock.meshes`).
 
 Every grid in RL-Lock is a numpy array indexed `[x, y, z]`. The text formats store x fastest, then y,
 then z, which is numpy's C order of an array indexed `[z, y, x]`; `from_xfastest` and `to_xfastest`
@@ -178,23 +179,32 @@ def validate_shape(grid: np.ndarray, name: str) -> np.ndarray:
     return grid
 
 
-def load_shape(spec: str) -> np.ndarray:
-    """The boolean grid `[x, y, z]` named by `spec`: a built-in name or a .puz/.vol/.npy file.
+def load_shape(spec: str, resolution: int | None = None) -> np.ndarray:
+    """The boolean grid `[x, y, z]` named by `spec`: a built-in name, a .puz/.vol/.npy file, or a closed
+    .stl/.obj mesh voxelized to at most `resolution` voxels along its longest side (see rllock.meshes).
 
     The result is cropped to its bounding box, non-empty and 6-connected.
     """
+    path = Path(spec)
+    suffix = path.suffix.lower()
+    is_mesh = suffix in (".stl", ".obj")
+    if resolution is not None and not is_mesh:
+        raise RLLockError(f"a resolution applies only to .stl and .obj meshes, not to {spec!r}")
     grid = builtin_shape(spec)
     if grid is None:
-        path = Path(spec)
-        suffix = path.suffix.lower()
-        if suffix == ".puz":
+        if is_mesh:
+            # Imported here because trimesh is slow to import and only mesh input needs it.
+            from rllock.meshes import voxelize_mesh
+
+            grid = voxelize_mesh(path, resolution)
+        elif suffix == ".puz":
             grid = read_puz_labels(path) != 0
         elif suffix == ".vol":
             grid = read_vol(path)
         elif suffix == ".npy":
             grid = read_npy(path)
         elif path.exists():
-            raise RLLockError(f"unsupported shape file {spec!r}: use .puz, .vol or .npy")
+            raise RLLockError(f"unsupported shape file {spec!r}: use .puz, .vol, .npy, .stl or .obj")
         else:
             raise RLLockError(f"unknown shape {spec!r}: not a file, and not a built-in ({BUILTIN_HELP})")
     return validate_shape(grid, spec)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rllock.env import State, Task, apply_chunk, candidates, final_labels, initial_state, is_solved
+from rllock.env import State, Task, apply_chunk, distinct_subset, final_labels, initial_state, sample_accepted
 
 
 @dataclass(frozen=True)
@@ -27,6 +27,9 @@ class SearchConfig:
     """Distinct accepted chunks kept per node (tried in random order)."""
     restart_base: int = 64
     """Node expansions per unit of the Luby restart schedule."""
+    lookahead: bool = True
+    """Expand children as soon as their parent is, and try first the child with the most accepted
+    continuations (fail-first pruning: children with none are dropped before they are entered)."""
 
 
 @dataclass(frozen=True)
@@ -46,31 +49,46 @@ def luby(i: int) -> int:
     return luby(i - (1 << (k - 1)) + 1)
 
 
-def _dfs(task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float):
-    """One restart: DFS from the root for at most `budget` expansions. Returns (solved state or None,
-    expansions used)."""
+def _dfs(task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float,
+         target: int):
+    """One restart: DFS from the root for at most `budget` expansions until a state with `target`
+    placed pieces. Returns (that state or None, expansions used)."""
     expansions = 0
 
-    def expand(state: State) -> list[np.ndarray]:
+    def sample(state: State) -> tuple[np.ndarray, int]:
         nonlocal expansions
         expansions += 1
         seed = int(rng.integers(1 << 31))
-        return list(candidates(task, state, seed=seed, num_samples=config.samples_per_node,
-                               max_candidates=config.children))
+        accepted = sample_accepted(task, state, seed=seed, num_samples=config.samples_per_node)
+        return distinct_subset(accepted, config.children, seed), len(accepted)
+
+    def children_of(state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
+        """Children in pop order (best last); their own candidates are attached under lookahead."""
+        kids = [apply_chunk(state, c) for c in chunks]
+        if not config.lookahead or state.placed + 1 == target:
+            return [(k, None) for k in kids]
+        scored = []
+        for kid in kids:
+            grand, score = sample(kid)
+            if len(grand):
+                scored.append((score, kid, grand))
+        scored.sort(key=lambda t: t[0])
+        return [(kid, grand) for _, kid, grand in scored]
 
     root = initial_state(task)
-    stack: list[tuple[State, list[np.ndarray]]] = [(root, expand(root))]
+    stack = [children_of(root, sample(root)[0])]
     while stack:
         if expansions >= budget or time.monotonic() > deadline:
             return None, expansions
-        state, children = stack[-1]
-        if not children:
+        if not stack[-1]:
             stack.pop()
             continue
-        child = apply_chunk(state, children.pop())
-        if is_solved(task, child):
+        child, grand = stack[-1].pop()
+        if child.placed == target:
             return child, expansions
-        stack.append((child, expand(child)))
+        if grand is None:
+            grand = sample(child)[0]
+        stack.append(children_of(child, grand))
     return None, expansions
 
 
@@ -84,7 +102,8 @@ def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = S
     last, used, restart = start, 0, 0
     while time.monotonic() < deadline:
         restart += 1
-        state, expansions = _dfs(task, rng, config, config.restart_base * luby(restart), deadline)
+        state, expansions = _dfs(task, rng, config, config.restart_base * luby(restart), deadline,
+                                 task.pieces - 1)
         used += expansions
         if state is None:
             continue
@@ -96,3 +115,17 @@ def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = S
         now = time.monotonic()
         yield Found(task.topology.to_grid(labels), now - last, used)
         last, used, restart = now, 0, 0
+
+
+def reach_depth(task: Task, placed: int, *, seed: int, time_limit: float,
+                config: SearchConfig = SearchConfig()) -> State | None:
+    """A valid state with `placed` pieces (a seeded mid-episode state), or None within the time limit."""
+    rng = np.random.default_rng(seed)
+    deadline = time.monotonic() + time_limit
+    restart = 0
+    while time.monotonic() < deadline:
+        restart += 1
+        state, _ = _dfs(task, rng, config, config.restart_base * luby(restart), deadline, placed)
+        if state is not None:
+            return state
+    return None

@@ -1,0 +1,173 @@
+"""The `rllock` command line. Bad input ends in one line on stderr and exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from tqdm import tqdm
+
+from rllock.assembly import read_assembly, write_assembly
+from rllock.errors import RLLockError
+from rllock.reference import REMOVAL_MODES
+
+log = logging.getLogger("rllock")
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def _add_task_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shape", required=True, help="cubeN, box:WxHxD, ring, or a .puz/.vol/.npy file")
+    p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight",
+                   help="straight: one axis slide per piece (default); path: DESIA's multi-move test")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from rllock.verify import verify_labels
+
+    labels, _ = read_assembly(args.file)
+    verdict = verify_labels(labels, args.removal)
+    if args.json:
+        sys.stdout.write(json.dumps({"file": str(args.file), **verdict.to_json()}) + "\n")
+    elif verdict.valid:
+        sys.stdout.write(f"valid: {verdict.pieces} pieces, removal={verdict.removal}, key = piece 1\n")
+    else:
+        sys.stdout.write(f"invalid: stage {verdict.failed_stage} fails the {verdict.failed_check} check "
+                         f"(removal={verdict.removal})\n")
+    return 0 if verdict.valid else 1
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    from rllock.env import make_task
+    from rllock.solve import SearchConfig, search
+
+    task = make_task(args.shape, args.pieces, args.removal)
+    config = SearchConfig()
+    out = Path(args.out)
+    start = time.perf_counter()
+    found = 0
+    with tqdm(total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly",
+              disable=None) as bar:
+        for f in search(task, seed=args.seed, time_limit=args.time_limit, config=config):
+            found += 1
+            folder = out / f"assembly_{found:03d}"
+            write_assembly(folder, f.labels, removal=task.removal, shape=task.shape_name,
+                           method={"name": "search", **asdict(config)}, seed=args.seed,
+                           timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions})
+            log.info("wrote %s (%.2f s)", folder, f.seconds)
+            bar.update(1)
+            if found >= args.count:
+                break
+    elapsed = time.perf_counter() - start
+    if found == 0:
+        sys.stdout.write(f"solve: no valid assembly of {task.shape_name} K={task.pieces} within "
+                         f"{args.time_limit:g} s\n")
+        return 1
+    sys.stdout.write(f"solve: {found} valid assemblies of {task.shape_name} K={task.pieces} in {elapsed:.2f} s: "
+                     f"{elapsed / found:.3f} s per valid assembly -> {out}\n")
+    return 0
+
+
+def cmd_bench_checkers(args: argparse.Namespace) -> int:
+    from rllock.bench import bench_checkers
+
+    r = bench_checkers(shape=args.shape, pieces=args.pieces, piece=args.piece, seconds=args.seconds,
+                       removal=args.removal)
+    if args.json:
+        sys.stdout.write(json.dumps({**asdict(r), "shape": args.shape, "pieces": args.pieces,
+                                     "piece": args.piece, "removal": args.removal}) + "\n")
+    else:
+        sys.stdout.write(f"checkers: {r.chunks_per_sec:,.0f} raw chunks sampled and checked per second "
+                         f"(median of {r.repeats} calls of 1024, one core), accept rate {r.accept_rate:.2%}, "
+                         f"piece {args.piece} of {args.shape} K={args.pieces}, removal={args.removal}\n")
+    return 0
+
+
+def cmd_bench_solve(args: argparse.Namespace) -> int:
+    from rllock.bench import bench_solve_task, format_solve_table, parse_tasks
+    from rllock.solve import SearchConfig
+
+    tasks = parse_tasks(args.tasks)
+    rows = []
+    for size, pieces in tqdm(tasks, desc="bench solve", unit="task", disable=None):
+        rows.append(bench_solve_task(size, pieces, count=args.count, time_limit=args.time_limit,
+                                     seed=args.seed, config=SearchConfig()))
+        log.info("%s: %d found in %.1f s", rows[-1].task, rows[-1].found, rows[-1].seconds)
+    if args.json:
+        sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "count": args.count,
+                                     "tasks": [asdict(r) for r in rows]}) + "\n")
+    else:
+        sys.stdout.write(format_solve_table(rows, args.time_limit) + "\n")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rllock", description="Interlocking assemblies from voxel shapes.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("verify", help="check every stage of an assembly (.puz or assembly.json)")
+    p.add_argument("file")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_verify)
+
+    p = sub.add_parser("solve", help="find assemblies by randomized search (no training needed)")
+    _add_task_args(p)
+    p.add_argument("--count", type=int, default=1, help="valid assemblies to find")
+    p.add_argument("--time-limit", type=_positive_float, default=60.0, help="seconds")
+    p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
+    p.set_defaults(func=cmd_solve)
+
+    bench = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="bench", required=True)
+    p = bench.add_parser("checkers", help="raw chunks sampled and checked per second on one core")
+    p.add_argument("--shape", default="cube6")
+    p.add_argument("--pieces", type=int, default=25)
+    p.add_argument("--piece", type=int, default=13, help="the piece being sampled (1-based)")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight")
+    p.add_argument("--seconds", type=_positive_float, default=5.0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_checkers)
+
+    p = bench.add_parser("solve", help="the nine paper tasks: time per valid assembly vs the paper")
+    p.add_argument("--tasks", help="subset, e.g. 5^3:13,6^3:20")
+    p.add_argument("--count", type=int, default=5, help="valid assemblies per task")
+    p.add_argument("--time-limit", type=_positive_float, default=120.0, help="seconds per task")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_solve)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    for noisy in ("numba", "jax", "absl", "matplotlib", "PIL"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    try:
+        if getattr(args, "count", 1) < 1:
+            raise RLLockError(f"--count must be at least 1, got {args.count}")
+        return args.func(args)
+    except RLLockError as exc:
+        sys.stderr.write(f"rllock: error: {exc}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("rllock: interrupted\n")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

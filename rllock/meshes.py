@@ -1,0 +1,134 @@
+"""Triangle meshes both ways: voxel pieces to watertight meshes, and `.stl`/`.obj` models to voxel shapes.
+
+Pieces to meshes. A piece is the union of its unit voxels, built with manifold3d's exact booleans and then
+simplified so that coplanar faces are merged. With a clearance `gap`, the piece is eroded by gap/2 (an
+inward offset of every face that borders another piece or the outside), so two neighbouring pieces end
+up `gap` apart and the whole assembly `gap` smaller along each axis; faces between voxels of the same
+piece stay fused. The eroded solid is the union of a few boxes per voxel: the voxel's core, plus a
+bridge towards every neighbouring voxel, every full 2x2 square and every full 2x2x2 cube it belongs to.
+
+A piece whose voxels touch only along an edge has a non-manifold edge there. Its mesh keeps the two
+sheets apart with duplicate vertices, so it is a closed 2-manifold (and stays one in OBJ, which keeps
+vertex indices), but STL has no shared vertices: tools that weld STL vertices by position see that
+edge as non-manifold. Any gap > 0 separates such edges and removes the problem.
+
+Meshes to voxels. A closed mesh is sampled at voxel centres on a grid whose longest side has
+`resolution` voxels; a voxel is filled when its centre is inside the solid. Only the largest
+6-connected part is kept.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from pathlib import Path
+
+import manifold3d as m3
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+from rllock.errors import RLLockError
+
+DEFAULT_RESOLUTION = 8
+MESH_SUFFIXES = (".stl", ".obj")
+
+log = logging.getLogger(__name__)
+
+
+def _boxes(cells: np.ndarray, inset: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(lo, hi) corners, in voxel units, of boxes whose union is the piece eroded by `inset` (< 0.5)."""
+    filled = {tuple(int(c) for c in v) for v in cells}
+    # Without an inset the unit voxels alone are the solid; bridges only matter when faces move in.
+    offsets = [(0, 0, 0)] if inset == 0 else list(itertools.product((0, 1), repeat=3))
+    boxes = []
+    for v in filled:
+        for off in offsets:
+            block = itertools.product(*[range(v[a], v[a] + 1 + off[a]) for a in range(3)])
+            if all(b in filled for b in block):
+                lo = np.asarray(v, dtype=float) + inset
+                hi = np.asarray(v, dtype=float) + 1 - inset + np.asarray(off)
+                boxes.append((lo, hi))
+    return boxes
+
+
+def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) -> trimesh.Trimesh:
+    """The watertight mesh of one piece, given as the (n, 3) voxel coordinates it occupies, in the
+    assembled position (voxel (x, y, z) spans [x, x+1] * voxel_size along x, and so on)."""
+    if voxel_size <= 0:
+        raise RLLockError(f"the voxel size must be positive, got {voxel_size}")
+    if not 0 <= gap < voxel_size:
+        raise RLLockError(f"the gap must be at least 0 and smaller than the voxel size {voxel_size}, got {gap}")
+    if len(cells) == 0:
+        raise RLLockError("cannot mesh a piece with no voxels")
+    inset = gap / 2 / voxel_size
+    cubes = [
+        m3.Manifold.cube((hi - lo) * voxel_size).translate(lo * voxel_size) for lo, hi in _boxes(cells, inset)
+    ]
+    # as_original() forgets which input cube each triangle came from, so that simplify() may merge
+    # coplanar triangles across cubes; the tiny tolerance keeps the geometry exact.
+    solid = m3.Manifold.batch_boolean(cubes, m3.OpType.Add).as_original().simplify(1e-9)
+    mesh = solid.to_mesh()
+    return trimesh.Trimesh(np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts), process=False)
+
+
+def assembly_meshes(labels: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) -> list[trimesh.Trimesh]:
+    """One mesh per piece 1..K of a label grid [x, y, z], in piece order."""
+    return [piece_mesh(np.argwhere(labels == k), voxel_size, gap) for k in range(1, int(labels.max()) + 1)]
+
+
+def _load_mesh(path: Path) -> trimesh.Trimesh:
+    if not path.is_file():
+        raise RLLockError(f"no such file: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    # trimesh's many loaders fail on malformed files with unrelated exception types.
+    except Exception as exc:
+        raise RLLockError(f"cannot read mesh {path}: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise RLLockError(f"{path} holds no triangle mesh")
+    if not mesh.is_watertight:
+        raise RLLockError(f"mesh {path} is not watertight: filling its inside needs a closed surface")
+    return mesh
+
+
+def _sample_inside(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
+    """Boolean grid [x, y, z]: voxel centres inside the mesh, `resolution` voxels along its longest side."""
+    lo, hi = mesh.bounds
+    extent = hi - lo
+    pitch = float(extent.max()) / resolution
+    if pitch <= 0:
+        raise RLLockError("the mesh has no volume")
+    # The tolerance keeps an exact multiple of the pitch from gaining a voxel to rounding.
+    dims = np.maximum(1, np.ceil(extent / pitch - 1e-6)).astype(int)
+    origin = (lo + hi) / 2 - dims * pitch / 2
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = mesh.contains(origin + (index + 0.5) * pitch)
+    return inside.reshape(tuple(dims))
+
+
+def largest_component(grid: np.ndarray, name: str) -> np.ndarray:
+    """The largest 6-connected part of a boolean grid, with a warning when voxels are dropped."""
+    parts, count = ndimage.label(grid)  # the default structure is 6-connectivity
+    if count <= 1:
+        return grid
+    sizes = np.bincount(parts.ravel())[1:]
+    keep = parts == int(np.argmax(sizes)) + 1
+    log.warning(
+        "%s: kept the largest of %d connected parts, dropped %d of %d voxels",
+        name, count, int(grid.sum() - keep.sum()), int(grid.sum()),
+    )
+    return keep
+
+
+def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray:
+    """A closed `.stl`/`.obj` mesh as a boolean grid [x, y, z] (mesh axes kept), at most `resolution`
+    voxels along its longest side, reduced to its largest 6-connected part."""
+    resolution = DEFAULT_RESOLUTION if resolution is None else resolution
+    if resolution < 1:
+        raise RLLockError(f"the resolution must be at least 1 voxel, got {resolution}")
+    path = Path(path)
+    grid = _sample_inside(_load_mesh(path), resolution)
+    if not grid.any():
+        raise RLLockError(f"mesh {path} fills no voxel at resolution {resolution}: try a higher resolution")
+    return largest_component(grid, str(path))

@@ -1,0 +1,43 @@
+"""Bad input: one line on stderr, exit status 2, no traceback."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+
+
+def _files(tmp_path):
+    (tmp_path / "malformed.puz").write_text("4 4 4\n1 2 x\n")
+    (tmp_path / "short.vol").write_text("2 2 2\n1 1 1\n1 1 1\n")
+    (tmp_path / "empty.puz").write_text("2 1 1\n0 0\n")
+    (tmp_path / "apart.puz").write_text("3 1 1\n1 0 1\n")
+    np.save(tmp_path / "flat.npy", np.ones((3, 3)))
+    (tmp_path / "bad.json").write_text("{not json")
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [(["solve", "--shape", "teapot", "--pieces", "3"], "unknown shape"),
+     (["solve", "--shape", "{t}/missing.puz", "--pieces", "3"], "no such file"),
+     (["solve", "--shape", "{t}/malformed.puz", "--pieces", "3"], "malformed"),
+     (["solve", "--shape", "{t}/short.vol", "--pieces", "3"], "malformed"),
+     (["solve", "--shape", "{t}/empty.puz", "--pieces", "3"], "empty"),
+     (["solve", "--shape", "{t}/apart.puz", "--pieces", "2"], "not 6-connected"),
+     (["solve", "--shape", "{t}/flat.npy", "--pieces", "2"], "3-D"),
+     (["solve", "--shape", "cube3", "--pieces", "1"], "at least 2"),
+     (["solve", "--shape", "cube2", "--pieces", "9"], "larger than"),
+     (["solve", "--shape", "cube3", "--pieces", "3", "--count", "0"], "--count"),
+     (["verify", "{t}/bad.json"], "malformed"),
+     (["verify", "{t}/nothing.puz"], "no such file")],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
+    _files(tmp_path)
+    args = [a.format(t=tmp_path) for a in args]
+    if args[0] == "solve":
+        args += ["--out", str(tmp_path / "out"), "--time-limit", "5"]
+    code, _, err = run_cli(*args)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and needle in lines[0] and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

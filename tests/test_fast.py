@@ -1,0 +1,106 @@
+"""The compiled sampler and checkers against the reference implementation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rllock import fast
+from rllock import reference as ref
+from rllock.env import State, apply_chunk, candidates, initial_state, make_task, sample_accepted
+
+from helpers import parts_after, random_valid_states, raw_chunks, voxel_labels
+
+
+def _reference_bits(parts, rest, removal) -> int:
+    bits = fast.CONNECTED if ref.is_connected(rest) else 0
+    bits |= fast.REMOVABLE if ref.is_removable(parts[-1], rest, removal) else 0
+    bits |= fast.INTERLOCKING if len(parts) < 2 or ref.is_interlocking([*parts, rest]) else 0
+    return bits
+
+
+@pytest.mark.parametrize(
+    "shape,k,removal,episodes",
+    [("cube4", 7, "straight", 6), ("cube4", 9, "path", 5), ("cube5", 13, "straight", 3),
+     ("box:4x3x3", 6, "path", 6), ("ring", 15, "straight", 2)],
+)
+def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
+    """Each of the three checks, on thousands of (state, raw chunk) pairs from random valid states."""
+    task = make_task(shape, k, removal)
+    topo = task.topology
+    rng = np.random.default_rng(k)
+    compared, accepted = 0, 0
+    for state in random_valid_states(task, rng, episodes):
+        chunks = raw_chunks(task, state, rng, 25)
+        if len(chunks) == 0:
+            continue
+        got = fast.check_chunks(topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index,
+                                state.labels, state.placed + 1, chunks, removal == "path")
+        for chunk, bits in zip(chunks, got):
+            parts, rest = parts_after(task, state, chunk)
+            expected = _reference_bits(parts, rest, removal)
+            assert bits == expected, (shape, k, state.placed + 1, chunk.tolist())
+            compared += 1
+            accepted += expected == fast.ALL_CHECKS
+    assert compared >= 300 and 0 < accepted < compared
+
+
+def test_accepted_chunks_are_exactly_those_the_reference_accepts():
+    task = make_task("cube5", 13)
+    rng = np.random.default_rng(3)
+    for state in random_valid_states(task, rng, 2):
+        for chunk in sample_accepted(task, state, seed=int(rng.integers(1 << 30)), num_samples=256):
+            parts, rest = parts_after(task, state, chunk)
+            assert len(set(chunk.tolist())) == task.piece_size
+            assert ref.is_connected(parts[-1])
+            assert _reference_bits(parts, rest, "straight") == fast.ALL_CHECKS
+
+
+def test_sampler_distribution_matches_the_reference_sampler():
+    """On a state with few possible chunks, the fast and the reference sampler draw every chunk with
+    the same frequency (two-sample chi-square over the chunk histogram)."""
+    task = make_task("box:3x3x2", 6)  # n = 3
+    state = apply_chunk(initial_state(task), np.array([0, 1, 2], dtype=np.int32))
+    labels = voxel_labels(task, state)
+    rng = np.random.default_rng(0)
+    draws = 6000
+
+    def histogram(chunks) -> dict[tuple[int, ...], int]:
+        counts: dict[tuple[int, ...], int] = {}
+        for chunk in chunks:
+            key = tuple(sorted(int(v) for v in chunk))
+            counts[key] = counts.get(key, 0) + 1
+        return counts
+
+    reference = histogram(
+        [task.topology.index[v] for v in ref.sample_chunk(labels, 2, 3, rng)] for _ in range(draws)
+    )
+    topo = task.topology
+    compiled = histogram(fast.sample_raw(topo.nbr, topo.ray, state.labels, 2, 3, draws, 12345))
+    assert set(compiled) == set(reference) and len(reference) > 10
+    a = np.array([compiled[k] for k in reference], dtype=float)
+    b = np.array([reference[k] for k in reference], dtype=float)
+    chi2 = (((a - b) ** 2) / (a + b)).sum()
+    # Under the null, chi2 ~ chi-square with len-1 degrees of freedom; this bound is its 99.9% quantile
+    # for the sizes here, by a wide margin.
+    assert chi2 < 2 * len(reference) + 10
+
+
+def test_same_seed_same_candidates():
+    task = make_task("cube4", 8)
+    state = initial_state(task)
+    a = candidates(task, state, seed=7, num_samples=256, max_candidates=16)
+    b = candidates(task, state, seed=7, num_samples=256, max_candidates=16)
+    c = candidates(task, state, seed=8, num_samples=256, max_candidates=16)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert len(np.unique(a, axis=0)) == len(a)
+
+
+def test_first_voxel_of_a_piece_touches_the_previous_piece():
+    task = make_task("cube5", 13)
+    rng = np.random.default_rng(5)
+    state = next(s for s in random_valid_states(task, rng, 1) if s.placed == 3)
+    labels = voxel_labels(task, state)
+    for _ in range(200):
+        chunk = ref.sample_chunk(labels, 4, task.piece_size, rng)
+        assert any(labels.get(ref.shift(chunk[0], d)) == 3 for d in ref.DIRECTIONS)

@@ -1,0 +1,83 @@
+"""The reference checkers against the definitions themselves (brute force) on small cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rllock import reference as ref
+from rllock.env import make_task
+from rllock.shapes import read_puz_labels
+
+from helpers import parts_after, random_valid_states, raw_chunks
+
+
+def _parts(labels: np.ndarray, upto: int) -> list[ref.Part]:
+    parts = [frozenset(map(tuple, np.argwhere(labels == j).tolist())) for j in range(1, upto + 1)]
+    return [*parts, frozenset(map(tuple, np.argwhere(labels > upto).tolist()))]
+
+
+def test_scc_interlocking_agrees_with_subset_enumeration_on_published_stages(shared):
+    checked = 0
+    for name in ("Cube_4x4x4_K9.puz", "Cube_4x4x4_K9_01.puz", "Cube_Hollow_4x4x4_K7.puz"):
+        labels = read_puz_labels(shared / "data/published" / name)
+        for i in range(2, int(labels.max())):
+            parts = _parts(labels, i)
+            assert ref.is_interlocking(parts) == ref.is_interlocking_bruteforce(parts)
+            checked += 1
+    assert checked >= 15  # every stage i >= 2 of the three files
+
+
+def test_scc_interlocking_agrees_with_subset_enumeration_on_random_states():
+    """States reached through accepted chunks (interlocking) and the same states with one more raw,
+    unchecked chunk (mostly not): both tests must agree on every one."""
+    rng = np.random.default_rng(1)
+    outcomes = {True: 0, False: 0}
+    for shape, k in (("cube3", 5), ("box:4x3x2", 6), ("cube4", 8)):
+        task = make_task(shape, k)
+        for state in random_valid_states(task, rng, 6):
+            for chunk in raw_chunks(task, state, rng, 4):
+                parts, rest = parts_after(task, state, chunk)
+                valid_state = [*parts[:-1], rest | parts[-1]]  # A_(i-1), before the chunk
+                with_chunk = [*parts, rest]  # A_i with the unchecked chunk
+                for assembly in (valid_state, with_chunk):
+                    if len(assembly) < 3:
+                        continue
+                    expected = ref.is_interlocking_bruteforce(assembly)
+                    assert ref.is_interlocking(assembly) == expected
+                    outcomes[expected] += 1
+    assert outcomes[False] > 20 and outcomes[True] > 20
+
+
+def test_two_interleaved_combs_interlock_only_with_a_key():
+    # A 3x1x1 bar split into three unit parts: the middle one is blocked on x by both neighbours,
+    # but every part can slide along y and z, so nothing is interlocking.
+    bar = [frozenset({(0, 0, 0)}), frozenset({(1, 0, 0)}), frozenset({(2, 0, 0)})]
+    assert not ref.is_interlocking(bar)
+    assert not ref.is_interlocking_bruteforce(bar)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_straight_removal_implies_path_removal(seed):
+    rng = np.random.default_rng(seed)
+    cells = {tuple(v) for v in np.argwhere(rng.random((4, 4, 3)) < 0.6).tolist()}
+    piece = frozenset(c for c in cells if c[0] < 2)
+    rest = frozenset(cells - piece)
+    if not piece or not rest:
+        return
+    if ref.straight_exit(piece, rest) is not None:
+        assert ref.path_exit(piece, rest) is not None
+
+
+def test_path_removal_finds_a_two_move_exit_that_straight_misses():
+    # The piece sits between two full layers (z = +-1); in its own layer it is walled on -x, +x, -y,
+    # and on +y one voxel further away, so every straight ray is blocked, but one step along +y
+    # opens a free row along +x.
+    layers = {(x, y, z) for x in range(-2, 3) for y in range(-2, 3) for z in (-1, 1)}
+    rest = frozenset(layers | {(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 2, 0)})
+    piece = frozenset({(0, 0, 0)})
+    assert ref.straight_exit(piece, rest) is None
+    moves = ref.path_exit(piece, rest)
+    assert moves is not None and len(moves) >= 2
+    assert moves[0] == ref.DIRECTION_NAMES.index("+y")
+    assert not ref.is_removable(piece, rest | {(0, 1, 0)}, "path")
