@@ -12,9 +12,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rllock.assembly import read_assembly, write_assembly
+from rllock.assembly import read_assembly, register_writer, write_assembly
 from rllock.errors import RLLockError
 from rllock.reference import REMOVAL_MODES
+from rllock.render import write_picture
+from rllock.results_cli import add_commands as add_result_commands
 
 log = logging.getLogger("rllock")
 
@@ -27,7 +29,10 @@ def _positive_float(text: str) -> float:
 
 
 def _add_task_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shape", required=True, help="cubeN, box:WxHxD, ring, or a .puz/.vol/.npy file")
+    p.add_argument("--shape", required=True,
+                   help="cubeN, box:WxHxD, ring, a .puz/.vol/.npy file, or a closed .stl/.obj mesh")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="for .stl/.obj shapes: at most this many voxels along the longest side (default 8)")
     p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
     p.add_argument("--removal", choices=REMOVAL_MODES, default="straight",
                    help="straight: one axis slide per piece (default); path: DESIA's multi-move test")
@@ -53,7 +58,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.env import make_task
     from rllock.solve import SearchConfig, search
 
-    task = make_task(args.shape, args.pieces, args.removal)
+    task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     config = SearchConfig()
     out = Path(args.out)
     start = time.perf_counter()
@@ -148,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_solve)
+
+    add_result_commands(sub)
     return parser
 
 
@@ -157,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     for noisy in ("numba", "jax", "absl", "matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    register_writer(write_picture)  # every assembly the commands write gets its picture beside it
     try:
         if getattr(args, "count", 1) < 1:
             raise RLLockError(f"--count must be at least 1, got {args.count}")

@@ -42,10 +42,11 @@ class State:
     placed: int  # i: pieces P1..Pi are placed
 
 
-def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", name: str | None = None) -> Task:
+def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", name: str | None = None,
+              resolution: int | None = None) -> Task:
     if removal not in REMOVAL_MODES:
         raise RLLockError(f"unknown removal mode {removal!r}: use one of {', '.join(REMOVAL_MODES)}")
-    grid = load_shape(shape) if isinstance(shape, str) else np.asarray(shape, dtype=bool)
+    grid = load_shape(shape, resolution) if isinstance(shape, str) else np.asarray(shape, dtype=bool)
     piece_size(int(grid.sum()), pieces)
     if pieces > np.iinfo(np.int16).max:
         raise RLLockError(f"K = {pieces} is too many pieces")

@@ -23,7 +23,6 @@ BurrTools (`.xmpuzzle`, gzip-compressed XML, puzzle format version 2, the brick 
 from __future__ import annotations
 
 import gzip
-import logging
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -38,8 +37,6 @@ MESH_FORMATS = ("obj", "stl")
 FORMATS = (*MESH_FORMATS, "xmpuzzle")
 # BurrTools takes any offset beyond 10000 units as "removed"; its own disassembler writes 20000.
 _REMOVED = 20000
-
-log = logging.getLogger(__name__)
 
 
 def write_meshes(labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: float = 10.0,

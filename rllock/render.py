@@ -9,6 +9,7 @@ remaining pieces' bounding box, piece K staying put. Matplotlib draws through it
 
 from __future__ import annotations
 
+import base64
 import colorsys
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from PIL import Image
 
@@ -137,7 +139,7 @@ def _collection(pieces: list[Piece], offsets: np.ndarray, shown: np.ndarray, col
                             linewidths=0.6)
 
 
-def _axes(fig: Figure, position: tuple[int, int, int], lo: np.ndarray, hi: np.ndarray, title: str):
+def _axes(fig: Figure, position: tuple[int, int, int], lo: np.ndarray, hi: np.ndarray, title: str) -> Axes3D:
     ax = fig.add_subplot(*position, projection="3d")
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
@@ -162,7 +164,7 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     colors = piece_colors(k)
     center = np.asarray(labels.shape) / 2
     # Pieces move out from the centre by their own distance from it: far enough to show every piece.
-    spread = np.stack([1.2 * (p.center - center) for p in pieces])
+    spread = np.stack([1.5 * (p.center - center) for p in pieces])
     shown = np.ones(k, dtype=bool)
     fig = Figure(figsize=(10, 5), dpi=90)
     FigureCanvasAgg(fig)
@@ -182,7 +184,7 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     fig.savefig(path)
 
 
-def _label(ax, at: np.ndarray, text: str, key: bool) -> None:
+def _label(ax: Axes3D, at: np.ndarray, text: str, key: bool) -> None:
     ax.text(*at, text, fontsize=8, ha="center", va="center", fontweight="bold" if key else "normal",
             bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="black" if key else "none", alpha=0.8))
 
@@ -223,10 +225,15 @@ def _mesh_arrays(piece: Piece) -> tuple[np.ndarray, np.ndarray]:
     return vertices, triangles
 
 
+def _typed(values: np.ndarray, dtype: str = "i2") -> dict:
+    """A plotly.js typed array (int16 by default): a few bytes a number in the page instead of decimals."""
+    return {"dtype": dtype, "bdata": base64.b64encode(values.astype("<" + dtype).tobytes()).decode("ascii")}
+
+
 def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
     """One self-contained page (plotly.js embedded, no network): a 3D view to turn and zoom, and a
     slider and play button that step through the disassembly."""
-    import plotly.graph_objects as go  # imported here: only the HTML page needs plotly
+    import plotly.io  # imported here: only the HTML page needs plotly
 
     pieces = pieces_of(labels)
     k = len(pieces)
@@ -234,40 +241,43 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
     steps = disassembly_steps(verdict)
     lo, hi = _scene_bounds(pieces, steps)
     meshes = [_mesh_arrays(p) for p in pieces]
-    # A removed piece is moved this far away, outside the fixed axis ranges, where plotly clips it.
-    away = np.array([10 * float((hi - lo).max()) + 1000, 0, 0])
 
     def coords(step: Step) -> list[dict]:
         out = []
         for (vertices, _), off, shown in zip(meshes, step.offsets, step.present):
-            at = vertices + (off if shown else away)
-            out.append(dict(type="mesh3d", x=at[:, 0], y=at[:, 1], z=at[:, 2]))
+            # A removed piece collapses to one point: its triangles have no area and draw nothing.
+            at = vertices + off if shown else np.broadcast_to(vertices[0], vertices.shape)
+            out.append({"type": "mesh3d", "x": _typed(at[:, 0]), "y": _typed(at[:, 1]), "z": _typed(at[:, 2])})
         return out
 
+    names = [f"piece {i + 1}" + (" (key)" if i == 0 else "") for i in range(k)]
     traces = [
-        go.Mesh3d(**coords(steps[0])[i], i=tri[:, 0], j=tri[:, 1], k=tri[:, 2], color=_hex(colors[i]),
-                  flatshading=True, name=f"piece {i + 1}" + (" (key)" if i == 0 else ""),
-                  hovertemplate=f"piece {i + 1}" + (" (key)" if i == 0 else "") + "<extra></extra>")
-        for i, (_, tri) in enumerate(meshes)
+        {**xyz, "i": _typed(tri[:, 0], "i4"), "j": _typed(tri[:, 1], "i4"), "k": _typed(tri[:, 2], "i4"),
+         "color": _hex(colors[i]),
+         "flatshading": True, "name": names[i], "showlegend": True, "hovertemplate": names[i] + "<extra></extra>"}
+        for i, (xyz, (_, tri)) in enumerate(zip(coords(steps[0]), meshes))
     ]
     summary = f"<br><sup>{order_caption(k)}, {verdict.removal} removal</sup>"
-    frames = [go.Frame(name=str(s), data=coords(step), traces=list(range(k)),
-                       layout=dict(title_text=f"step {s}/{len(steps) - 1}: {step.caption}{summary}"))
-              for s, step in enumerate(steps)]
-    still = dict(mode="immediate", frame=dict(duration=0, redraw=True), transition=dict(duration=0))
-    play = dict(mode="immediate", fromcurrent=True, frame=dict(duration=700, redraw=True), transition=dict(duration=0))
-    slider = dict(active=0, x=0.12, len=0.88, y=0, pad=dict(t=10, b=10), currentvalue=dict(prefix="step "),
-                  steps=[dict(method="animate", label=str(s), args=[[str(s)], still]) for s in range(len(steps))])
-    buttons = dict(type="buttons", direction="left", x=0.12, y=0, xanchor="right", yanchor="top", pad=dict(t=45, r=10),
-                   buttons=[dict(label="▶", method="animate", args=[None, play]),
-                            dict(label="❚❚", method="animate", args=[[None], still])])
+    titles = [f"step {s}/{len(steps) - 1}: {step.caption}{summary}" for s, step in enumerate(steps)]
+    # Every frame sets every piece, so that the slider may jump to any step from any other.
+    frames = [{"name": str(s), "data": coords(step), "traces": list(range(k)), "layout": {"title": {"text": t}}}
+              for s, (step, t) in enumerate(zip(steps, titles))]
+    still = {"mode": "immediate", "frame": {"duration": 0, "redraw": True}, "transition": {"duration": 0}}
+    play = {**still, "fromcurrent": True, "frame": {"duration": 700, "redraw": True}}
+    slider = {"active": 0, "x": 0.12, "len": 0.88, "y": 0, "pad": {"t": 10, "b": 10},
+              "currentvalue": {"prefix": "step "},
+              "steps": [{"method": "animate", "label": str(s), "args": [[str(s)], still]} for s in range(len(steps))]}
+    buttons = {"type": "buttons", "direction": "left", "x": 0.12, "y": 0, "xanchor": "right", "yanchor": "top",
+               "pad": {"t": 45, "r": 10},
+               "buttons": [{"label": "▶", "method": "animate", "args": [None, play]},
+                           {"label": "❚❚", "method": "animate", "args": [[None], still]}]}
     span = hi - lo
-    axis = [dict(range=[lo[a], hi[a]], autorange=False, title=name) for a, name in enumerate("xyz")]
-    fig = go.Figure(traces, frames=frames)
-    fig.update_layout(
-        title=dict(text=frames[0].layout.title.text, x=0.02, font=dict(size=16)),
-        scene=dict(xaxis=axis[0], yaxis=axis[1], zaxis=axis[2], aspectmode="manual",
-                   aspectratio=dict(zip("xyz", span / span.max())), camera=dict(eye=dict(x=1.0, y=-1.4, z=0.9))),
-        sliders=[slider], updatemenus=[buttons], margin=dict(l=0, r=0, t=70, b=0), showlegend=True,
-    )
-    fig.write_html(path, include_plotlyjs=True, full_html=True, auto_play=False)
+    scene = {f"{a}axis": {"range": [float(lo[n]), float(hi[n])], "autorange": False, "title": {"text": a}}
+             for n, a in enumerate("xyz")}
+    scene.update(aspectmode="manual", aspectratio={a: float(span[n] / span.max()) for n, a in enumerate("xyz")},
+                 camera={"eye": {"x": 1.0, "y": -1.4, "z": 0.9}})
+    layout = {"title": {"text": titles[0], "x": 0.02, "font": {"size": 16}}, "scene": scene, "sliders": [slider],
+              "updatemenus": [buttons], "margin": {"l": 0, "r": 0, "t": 70, "b": 0}}
+    # Built as plain data, not graph objects: plotly's per-array validation takes seconds on big assemblies.
+    plotly.io.write_html({"data": traces, "layout": layout, "frames": frames}, path, validate=False,
+                         include_plotlyjs=True, full_html=True, auto_play=False)

@@ -1,0 +1,207 @@
+"""MCTS over action chunks: mctx's Gumbel MuZero, with nodes expanded on the host by the compiled sampler.
+
+The search tree (inside jit) holds only integer handles into a host-side `NodeStore`. Expanding a leaf
+calls back to the host (`jax.experimental.io_callback`): the store applies the chunk, samples M_s raw
+chunks for the child, keeps M_c accepted ones as its candidate actions, and returns the child's
+planes and candidates; the network then scores all leaves of the batch in one call. Several episodes
+run in lockstep, one batch row each, so every simulation is one network call for all of them.
+
+Rewards: 1/K per accepted chunk. A child with no candidates (a dead end) or with K-1 pieces placed
+(success) is terminal: discount 0 and value 0. Expanding below a terminal node gives reward 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import mctx
+import numpy as np
+from jax.experimental import io_callback
+
+from rllock.env import State, Task, apply_chunk, distinct_subset, initial_state, is_solved, sample_accepted
+from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
+
+
+@dataclass(frozen=True)
+class MCTSConfig:
+    simulations: int = 256
+    """Simulations per decision."""
+    max_considered: int = 16
+    """Gumbel MuZero's max_num_considered_actions at the root."""
+    raw_samples: int = 1024
+    """M_s: raw chunks sampled when a node is expanded."""
+    candidates: int = 32
+    """M_c: accepted chunks kept as a node's candidate actions."""
+    gumbel_scale: float = 1.0
+
+
+class NodeStore:
+    """Search nodes on the host: states, candidate chunks (voxel numbers), terminal flags, children."""
+
+    def __init__(self, task: Task, config: MCTSConfig, canvas: int, seed: int):
+        self.task = task
+        self.config = config
+        self.canvas_idx = canvas_index(task, canvas)
+        self.canvas = canvas
+        self.rng = np.random.default_rng(seed)
+        self.states: list[State] = []
+        self.cands: list[np.ndarray] = []
+        self.children: dict[tuple[int, int], int] = {}
+
+    def add(self, state: State) -> int:
+        if is_solved(self.task, state):
+            cands = np.zeros((0, self.task.piece_size), np.int32)
+        else:
+            seed = int(self.rng.integers(1 << 31))
+            accepted = sample_accepted(self.task, state, seed=seed, num_samples=self.config.raw_samples)
+            cands = distinct_subset(accepted, self.config.candidates, seed)
+        self.states.append(state)
+        self.cands.append(cands)
+        return len(self.states) - 1
+
+    def terminal(self, node: int) -> bool:
+        return len(self.cands[node]) == 0
+
+    def child(self, node: int, action: int) -> int:
+        """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
+        key = (node, action)
+        if key not in self.children:
+            self.children[key] = self.add(apply_chunk(self.states[node], self.cands[node][action]))
+        return self.children[key]
+
+    def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(planes [B, C, C, C, P], candidate chunks as canvas indices [B, M, n], valid [B, M])."""
+        m, n = self.config.candidates, self.task.piece_size
+        labels = np.stack([self.states[i].labels for i in nodes])
+        placed = np.array([self.states[i].placed for i in nodes])
+        chunks = np.zeros((len(nodes), m, n), np.int32)
+        valid = np.zeros((len(nodes), m), bool)
+        for row, i in enumerate(nodes):
+            c = self.cands[i]
+            chunks[row, : len(c)] = self.canvas_idx[c]
+            valid[row, : len(c)] = True
+        return encode_batch(self.task, labels, placed, self.canvas), chunks, valid
+
+    def expand(self, nodes: np.ndarray, actions: np.ndarray):
+        kids = np.empty(len(nodes), np.int32)
+        reward = np.zeros(len(nodes), np.float32)
+        discount = np.zeros(len(nodes), np.float32)
+        for row, (node, action) in enumerate(zip(nodes.tolist(), actions.tolist())):
+            if self.terminal(node) or action >= len(self.cands[node]):
+                kids[row] = node
+                continue
+            kid = self.child(node, action)
+            kids[row] = kid
+            reward[row] = 1.0 / self.task.pieces
+            discount[row] = 0.0 if self.terminal(kid) else 1.0
+        planes, chunks, valid = self.features(kids)
+        return kids, reward, discount, planes, chunks, valid
+
+
+class Searcher:
+    """A compiled batched search for one task shape (canvas, M_c, n); swap `store` between batches."""
+
+    def __init__(self, net: PolicyValueNet, config: MCTSConfig, canvas: int, piece_size: int, batch: int):
+        self.net = net
+        self.config = config
+        self.store: NodeStore | None = None
+        c, m, n = canvas, config.candidates, piece_size
+        shapes = (
+            jax.ShapeDtypeStruct((batch,), jnp.int32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch, c, c, c, PLANES), jnp.float32),
+            jax.ShapeDtypeStruct((batch, m, n), jnp.int32),
+            jax.ShapeDtypeStruct((batch, m), jnp.bool_),
+        )
+
+        def host_expand(nodes, actions):
+            assert self.store is not None
+            return self.store.expand(np.asarray(nodes), np.asarray(actions))
+
+        def evaluate(params, planes, chunks, valid):
+            voxel_logits, value = net.apply({"params": params}, planes)
+            return chunk_logits(voxel_logits, chunks, valid), value
+
+        def recurrent_fn(params, rng_key, action, embedding):
+            del rng_key
+            kids, reward, discount, planes, chunks, valid = io_callback(host_expand, shapes, embedding, action)
+            logits, value = evaluate(params, planes, chunks, valid)
+            out = mctx.RecurrentFnOutput(reward=reward, discount=discount, prior_logits=logits,
+                                         value=jnp.where(discount > 0, value, 0.0))
+            return out, kids
+
+        def search(params, key, roots, planes, chunks, valid):
+            logits, value = evaluate(params, planes, chunks, valid)
+            root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
+            out = mctx.gumbel_muzero_policy(
+                params, key, root, recurrent_fn, num_simulations=config.simulations,
+                invalid_actions=~valid, max_num_considered_actions=config.max_considered,
+                gumbel_scale=config.gumbel_scale,
+            )
+            return out.action, out.action_weights, value
+
+        self._search = jax.jit(search)
+
+    def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
+        """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
+        self.store = store
+        planes, chunks, valid = store.features(roots)
+        # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
+        valid[~valid.any(axis=1), 0] = True
+        action, weights, value = self._search(params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid)
+        return np.asarray(action), np.asarray(weights), np.asarray(value)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One self-play episode, compact: states as labels, candidates as voxel numbers."""
+
+    labels: np.ndarray  # int16[T, N]: the state before each decision
+    placed: np.ndarray  # int16[T]
+    chunks: np.ndarray  # int16[T, M, n]: candidate chunks (voxel numbers), padded with 0
+    num_valid: np.ndarray  # int16[T]: how many candidates are real
+    pi: np.ndarray  # float32[T, M]: the search policy
+    z: np.ndarray  # float32[T]: cumulative reward from each state to the end
+    success: bool
+    final: State  # the last state reached
+
+
+def play(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, seed: int,
+         canvas: int) -> list[Episode]:
+    """`batch` episodes in lockstep from the empty state; each decision takes the search's action."""
+    store = NodeStore(task, searcher.config, canvas, seed)
+    roots = np.array([store.add(initial_state(task)) for _ in range(batch)], np.int32)
+    trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
+    active = np.array([not store.terminal(r) for r in roots])
+    while active.any():
+        key, sub = jax.random.split(key)
+        actions, weights, _ = searcher.search(params, sub, store, roots)
+        for b in np.flatnonzero(active):
+            trace[b].append((int(roots[b]), weights[b]))
+            roots[b] = store.child(int(roots[b]), int(actions[b]))
+            active[b] = not store.terminal(int(roots[b]))
+    return [_episode(task, store, trace[b], int(roots[b]), searcher.config.candidates) for b in range(batch)]
+
+
+def _episode(task: Task, store: NodeStore, steps: list[tuple[int, np.ndarray]], last: int, m: int) -> Episode:
+    t, n = len(steps), task.piece_size
+    labels = np.zeros((t, task.size), np.int16)
+    placed = np.zeros(t, np.int16)
+    chunks = np.zeros((t, m, n), np.int16)
+    num_valid = np.zeros(t, np.int16)
+    pi = np.zeros((t, m), np.float32)
+    for s, (node, weights) in enumerate(steps):
+        cands = store.cands[node]
+        labels[s] = store.states[node].labels
+        placed[s] = store.states[node].placed
+        chunks[s, : len(cands)] = cands
+        num_valid[s] = len(cands)
+        pi[s] = weights
+    final = store.states[last]
+    # Each step's chunk was accepted (reward 1/K), so z_s = (placed at the end - placed at s) / K.
+    z = ((final.placed - placed) / task.pieces).astype(np.float32)
+    return Episode(labels, placed, chunks, num_valid, pi, z, is_solved(task, final), final)
+

@@ -1,0 +1,168 @@
+"""`rllock export`: watertight meshes per piece, and BurrTools files that hold the pieces and the solution."""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import trimesh
+
+from rllock.assembly import write_assembly
+from rllock.errors import RLLockError
+from rllock.export import write_meshes
+from rllock.reference import DIRECTION_NAMES, DIRECTIONS
+from rllock.results_cli import add_commands
+from rllock.shapes import from_xfastest, read_puz_labels
+from rllock.verify import verify_labels
+
+
+@pytest.fixture(scope="module")
+def labels() -> np.ndarray:
+    from rllock.env import make_task
+    from rllock.solve import search
+
+    return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
+
+
+@pytest.fixture
+def saved(tmp_path, labels):
+    write_assembly(tmp_path / "asm", labels, removal="straight", shape="cube4", method={"name": "test"}, seed=0,
+                   timings={})
+    return tmp_path / "asm"
+
+
+def _run(*argv: str) -> int:
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(required=True))
+    args = parser.parse_args(list(argv))
+    return args.func(args)
+
+
+def test_obj_export_without_gap_fills_the_shape(tmp_path, saved, labels):
+    assert _run("export", str(saved), "--format", "obj", "--out", str(tmp_path / "obj"), "--voxel-size", "5") == 0
+    paths = sorted((tmp_path / "obj").glob("piece_*.obj"))
+    assert [p.name for p in paths] == [f"piece_{i:02d}.obj" for i in range(1, 8)]
+    # OBJ keeps vertex indices, so even pieces with edge-only self-contacts load closed.
+    meshes = [trimesh.load(p, process=False) for p in paths]
+    assert all(m.is_watertight for m in meshes)
+    for k, mesh in enumerate(meshes, start=1):
+        assert mesh.volume == pytest.approx(int((labels == k).sum()) * 125)
+    assert sum(m.volume for m in meshes) == pytest.approx(labels.size * 125)
+
+
+def test_stl_export_with_gap(tmp_path, saved, labels):
+    _run("export", str(saved / "assembly.json"), "--format", "stl", "--out", str(tmp_path / "stl"), "--gap", "0.4")
+    paths = sorted((tmp_path / "stl").glob("piece_*.stl"))
+    assert len(paths) == 7
+    for k, path in enumerate(paths, start=1):
+        mesh = trimesh.load(path)  # STL is welded by position on loading
+        assert mesh.is_watertight
+        assert 0.8 * (labels == k).sum() * 1000 < mesh.volume < (labels == k).sum() * 1000
+        # Every face moves in by gap/2, so each piece's box shrinks by gap/2 on each side.
+        cells = np.argwhere(labels == k)
+        np.testing.assert_allclose(mesh.bounds, [cells.min(axis=0) * 10 + 0.2, (cells.max(axis=0) + 1) * 10 - 0.2],
+                                   atol=1e-4)
+
+
+def test_bad_export_options(tmp_path, saved):
+    with pytest.raises(RLLockError, match="gap"):
+        _run("export", str(saved), "--format", "stl", "--out", str(tmp_path), "--gap", "10")
+    with pytest.raises(RLLockError, match="voxel size"):
+        _run("export", str(saved), "--format", "stl", "--out", str(tmp_path), "--voxel-size", "0")
+    with pytest.raises(SystemExit):
+        _run("export", str(saved), "--format", "stl", "--out", str(tmp_path), "--gap", "-1")
+    with pytest.raises(RLLockError, match="mesh format"):
+        write_meshes(np.ones((1, 1, 2), dtype=int) * [[[1, 2]]], "ply", tmp_path)
+
+
+def _read_xmpuzzle(path):
+    with gzip.open(path, "rt", encoding="utf-8") as fh:
+        text = fh.read()
+    assert text.startswith('<?xml version="1.0"?>')
+    return ET.fromstring(text.split("\n", 1)[1])
+
+
+def _grid(voxel: ET.Element) -> np.ndarray:
+    dims = tuple(int(voxel.get(a)) for a in "xyz")
+    assert set(voxel.text) <= {"#", "_"} and len(voxel.text) == dims[0] * dims[1] * dims[2]
+    return from_xfastest(np.array([c == "#" for c in voxel.text]), dims)
+
+
+def _replay(separation: ET.Element, placed: dict[int, set], removed: list[int]) -> None:
+    """Walk a separation tree: every state must keep pieces apart, and its last state must remove some."""
+    pieces = [int(p) for p in separation.find("pieces").text.split()]
+    assert int(separation.find("pieces").get("count")) == len(pieces)
+    states = separation.findall("state")
+    assert len(states) >= 2
+    for n, state in enumerate(states):
+        offsets = np.array([[int(v) for v in state.find(t).text.split()] for t in ("dx", "dy", "dz")]).T
+        gone = [p for p, off in zip(pieces, offsets) if np.abs(off).max() > 10000]
+        assert bool(gone) == (n == len(states) - 1), "pieces leave in the last state only"
+        seen = set()
+        for p, off in zip(pieces, offsets):
+            if p in gone:
+                continue
+            cells = {tuple(np.asarray(c) + off) for c in placed[p]}
+            assert not cells & seen, "pieces overlap in a state"
+            seen |= cells
+    assert len(gone) == 1, "one piece leaves at each level"
+    removed += gone
+    children = separation.findall("separation")
+    assert [c.get("type") for c in children] == (["left"] if len(pieces) > 2 else [])
+    for child in children:
+        assert [int(p) for p in child.find("pieces").text.split()] == [p for p in pieces if p not in gone]
+        _replay(child, placed, removed)
+
+
+def _check_xmpuzzle(path, labels: np.ndarray) -> None:
+    root = _read_xmpuzzle(path)
+    k = int(labels.max())
+    assert root.tag == "puzzle" and root.get("version") == "2"
+    assert root.find("gridType").get("type") == "0"
+    voxels = root.find("shapes").findall("voxel")
+    assert len(voxels) == k + 1
+    np.testing.assert_array_equal(_grid(voxels[0]), labels != 0)
+    problem = root.find("problems/problem")
+    assert [int(s.get("id")) for s in problem.find("shapes")] == list(range(1, k + 1))
+    assert problem.find("result").get("id") == "0"
+    numbers = [int(v) for v in problem.find("solutions/solution/assembly").text.split()]
+    placements = np.array(numbers).reshape(k, 4)
+    assert (placements[:, 3] == 0).all()  # unrotated
+    placed, rebuilt = {}, np.zeros_like(labels)
+    for i, (voxel, (x, y, z, _)) in enumerate(zip(voxels[1:], placements)):
+        cells = np.argwhere(_grid(voxel)) + (x, y, z)
+        rebuilt[tuple(cells.T)] = i + 1
+        placed[i] = {tuple(c) for c in cells}
+    np.testing.assert_array_equal(rebuilt, labels)
+    removed: list[int] = []
+    _replay(problem.find("solutions/solution/separation"), placed, removed)
+    assert removed == list(range(k - 1))  # the key (BurrTools' piece 0) first, then in order
+
+
+def test_xmpuzzle_holds_shapes_assembly_and_disassembly(tmp_path, saved, labels):
+    assert _run("export", str(saved), "--format", "xmpuzzle", "--out", str(tmp_path / "bt")) == 0
+    _check_xmpuzzle(tmp_path / "bt" / "assembly.xmpuzzle", labels)
+
+
+def test_xmpuzzle_of_a_multi_move_path_assembly(tmp_path, shared):
+    source = shared / "data" / "published" / "Cube_4x4x4_K9.puz"
+    _run("export", str(source), "--format", "xmpuzzle", "--out", str(tmp_path))
+    labels = read_puz_labels(source)
+    _check_xmpuzzle(tmp_path / "Cube_4x4x4_K9.xmpuzzle", labels)
+    # Piece 3 needs two moves (path removal only): its level has the start, one move and the removal.
+    level = _read_xmpuzzle(tmp_path / "Cube_4x4x4_K9.xmpuzzle").find(
+        "problems/problem/solutions/solution/separation/separation/separation")
+    assert len(level.findall("state")) == 3
+    moves = verify_labels(labels, "path").disassembly[2]["moves"]
+    middle = level.findall("state")[1]
+    first = np.asarray(DIRECTIONS[DIRECTION_NAMES.index(moves[0]["direction"])])
+    assert [int(middle.find(t).text.split()[0]) for t in ("dx", "dy", "dz")] == list(first * moves[0]["steps"])
+
+
+def test_xmpuzzle_refuses_an_invalid_assembly(tmp_path):
+    (tmp_path / "bad.puz").write_text("3 1 1\n1 2 3\n")  # a row of three pieces does not interlock
+    with pytest.raises(RLLockError, match="not a valid assembly"):
+        _run("export", str(tmp_path / "bad.puz"), "--format", "xmpuzzle", "--out", str(tmp_path))

@@ -1,0 +1,150 @@
+"""`rllock show`: the PNG, the GIF that follows the verified moves, and the self-contained HTML viewer."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from rllock import assembly as assembly_module
+from rllock.assembly import write_assembly
+from rllock.errors import RLLockError
+from rllock.reference import DIRECTION_NAMES, DIRECTIONS
+from rllock.render import disassembly_steps, draw_png, piece_colors, write_gif, write_html, write_picture
+from rllock.results_cli import add_commands
+from rllock.shapes import read_puz_labels
+from rllock.verify import verify_labels
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+@pytest.fixture(scope="module")
+def labels() -> np.ndarray:
+    from rllock.env import make_task
+    from rllock.solve import search
+
+    return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
+
+
+def _run(*argv: str) -> int:
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(required=True))
+    args = parser.parse_args(list(argv))
+    return args.func(args)
+
+
+def _colourful_pixels(image: Image.Image) -> int:
+    """Pixels of a clearly saturated colour: the pieces, not white paper, grey axes or black text."""
+    hsv = np.asarray(image.convert("RGB").convert("HSV")).reshape(-1, 3)
+    return int(((hsv[:, 1] > 80) & (hsv[:, 2] > 60)).sum())
+
+
+def test_piece_colours_are_distinct():
+    colors = piece_colors(80)
+    distances = np.linalg.norm(colors[:, None] - colors[None], axis=-1)
+    assert distances[np.triu_indices(80, 1)].min() > 0.02
+    assert np.linalg.norm(colors[1:8, None] - colors[None, 1:8], axis=-1)[np.triu_indices(7, 1)].min() > 0.2
+
+
+def test_png_is_fast_and_shows_every_piece(tmp_path):
+    # Any labelling with ids 1..K can be drawn; 25 slabs of a 6x6x6 cube stand in for a K=25 assembly.
+    grid = (np.arange(216) * 25 // 216 + 1).reshape(6, 6, 6)
+    start = time.perf_counter()
+    draw_png(grid, tmp_path / "cube6.png", "straight")
+    assert time.perf_counter() - start < 3
+    image = Image.open(tmp_path / "cube6.png")
+    assert image.size == (900, 450)
+    assert _colourful_pixels(image) > 0.1 * 900 * 450
+
+
+def test_assembly_writer_hook_puts_a_picture_next_to_the_assembly(tmp_path, labels, monkeypatch):
+    monkeypatch.setattr(assembly_module, "_extra_writers", [])
+    assembly_module.register_writer(write_picture)
+    write_assembly(tmp_path / "out", labels, removal="straight", shape="cube4", method={"name": "test"}, seed=0,
+                   timings={})
+    assert Image.open(tmp_path / "out" / "assembly.png").format == "PNG"
+
+
+def test_steps_follow_the_verified_moves(shared):
+    labels = read_puz_labels(shared / "data" / "published" / "Cube_4x4x4_K9.puz")
+    verdict = verify_labels(labels, "path")
+    steps = disassembly_steps(verdict)
+    assert len(steps) == 2 + sum(len(e["moves"]) for e in verdict.disassembly)
+    assert steps[0].present.all() and not steps[0].offsets.any()
+    assert steps[-1].present.tolist() == [False] * 8 + [True]
+    for entry in verdict.disassembly:
+        total = sum(np.asarray(DIRECTIONS[DIRECTION_NAMES.index(m["direction"])]) * m["steps"] for m in entry["moves"])
+        np.testing.assert_array_equal(steps[-1].offsets[entry["piece"] - 1], total)
+    # Finer GIF frames pass through the same positions.
+    fine = disassembly_steps(verdict, frames_per_move=3)
+    assert len(fine) > len(steps)
+    np.testing.assert_array_equal(fine[-1].offsets, steps[-1].offsets)
+
+
+def test_gif_animates_the_disassembly(tmp_path, labels):
+    verdict = verify_labels(labels, "straight")
+    write_gif(labels, verdict, tmp_path / "a.gif")
+    gif = Image.open(tmp_path / "a.gif")
+    assert gif.n_frames == len(disassembly_steps(verdict, frames_per_move=3))
+    first = np.asarray(gif.convert("RGB"))
+    gif.seek(gif.n_frames - 1)
+    last = np.asarray(gif.convert("RGB"))
+    # The last frame holds only piece K: far fewer coloured pixels than the assembled first frame.
+    assert _colourful_pixels(Image.fromarray(last)) < 0.7 * _colourful_pixels(Image.fromarray(first))
+
+
+def test_html_is_self_contained(tmp_path, labels):
+    write_html(labels, verify_labels(labels, "straight"), tmp_path / "a.html")
+    text = (tmp_path / "a.html").read_text()
+    assert "<script src=" not in text  # plotly.js is inlined, so no network is needed
+    assert "Plotly.newPlot(" in text and "Plotly.addFrames(" in text
+    assert "piece 1 (key)" in text
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
+def test_html_renders_in_headless_chromium(tmp_path, labels):
+    page, shot = tmp_path / "a.html", tmp_path / "shot.png"
+    write_html(labels, verify_labels(labels, "straight"), page)
+    subprocess.run(
+        # --enable-unsafe-swiftshader keeps software WebGL on where Chromium no longer falls back to it by itself.
+        [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+         "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=800,600",
+         "--virtual-time-budget=5000", page.as_uri()],
+        capture_output=True, timeout=120, check=False,
+    )
+    image = Image.open(shot)
+    # The pieces cover a good part of the 3D view; a page without WebGL output would be white and grey.
+    assert _colourful_pixels(image) > 5000
+    assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 50
+
+
+def test_show_command_writes_all_three(tmp_path, shared):
+    source = shared / "data" / "published" / "cartoon_dog.puz"
+    out = {kind: tmp_path / f"dog.{kind}" for kind in ("png", "gif", "html")}
+    assert _run("show", str(source), *[f"--{kind}={path}" for kind, path in out.items()]) == 0
+    assert all(path.stat().st_size > 0 for path in out.values())
+
+
+def test_show_uses_the_removal_mode_that_makes_a_puz_valid(tmp_path, shared):
+    # Valid only under path removal: the GIF follows the multi-move disassembly.
+    source = shared / "data" / "published" / "Cube_4x4x4_K9.puz"
+    assert _run("show", str(source), "--gif", str(tmp_path / "a.gif")) == 0
+    verdict = verify_labels(read_puz_labels(source), "path")
+    assert Image.open(tmp_path / "a.gif").n_frames == len(disassembly_steps(verdict, frames_per_move=3))
+
+
+def test_show_errors(tmp_path):
+    (tmp_path / "bad.puz").write_text("3 1 1\n1 2 3\n")
+    with pytest.raises(RLLockError, match="nothing to show"):
+        _run("show", str(tmp_path / "bad.puz"))
+    with pytest.raises(RLLockError, match="not a valid assembly"):
+        _run("show", str(tmp_path / "bad.puz"), "--gif", str(tmp_path / "a.gif"))
+    with pytest.raises(RLLockError, match="no such file"):
+        _run("show", str(tmp_path / "missing.json"), "--png", str(tmp_path / "a.png"))
