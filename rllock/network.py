@@ -74,13 +74,37 @@ def encode_batch(task: Task, labels: np.ndarray, placed: np.ndarray, canvas: int
     return flat.reshape(batch, canvas, canvas, canvas, PLANES)
 
 
+class Conv3(nn.Module):
+    """A 3x3x3 'SAME' convolution as 27 shifted copies and one matmul: on the CPU this is about twice
+    as fast as XLA's convolution for these small volumes (tests check it equals lax.conv)."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        c_in = x.shape[-1]
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (27 * c_in, self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        return shifted_columns(x) @ kernel + bias
+
+
+def shifted_columns(x: jax.Array) -> jax.Array:
+    """[B, D, H, W, C] -> [B, D, H, W, 27 C]: each voxel's 3x3x3 neighbourhood (zero padded), offsets
+    in (dx, dy, dz) row-major order, matching a DHWIO kernel reshaped to (27 C, out)."""
+    d, h, w = x.shape[1:4]
+    xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (1, 1), (0, 0)))
+    return jnp.concatenate(
+        [xp[:, i : i + d, j : j + h, k : k + w, :] for i in range(3) for j in range(3) for k in range(3)], axis=-1
+    )
+
+
 class _Block(nn.Module):
     features: int
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for _ in range(2):
-            x = nn.Conv(self.features, (3, 3, 3), padding="SAME")(x)
+            x = Conv3(self.features)(x)
             x = nn.LayerNorm()(x)
             x = nn.relu(x)
         return x

@@ -1,0 +1,1 @@
+"""The JAX learner: replay buffer, update step, checkpoints and TensorBoard logging."""

@@ -1,0 +1,79 @@
+"""The learner: a pure jitted update step inside a thin stateful class (acme style)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from rllock.env import Task
+from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    learning_rate: float = 5e-5
+    """Adam's learning rate (the paper's 5e-5)."""
+    batch_size: int = 64
+    """Transitions per update."""
+
+
+def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):
+    """Cross-entropy(pi, p) + (z - v)^2, averaged over the batch; also returns both terms."""
+    voxel_logits, value = net.apply({"params": params}, planes)
+    logits = chunk_logits(voxel_logits, chunks, valid)
+    log_p = jax.nn.log_softmax(logits, axis=-1)
+    policy = -jnp.sum(jnp.where(valid, pi * log_p, 0.0), axis=-1).mean()
+    value_loss = jnp.mean((z - value) ** 2)
+    return policy + value_loss, (policy, value_loss)
+
+
+@partial(jax.jit, static_argnames=("net", "optimizer"))
+def update_step(params, opt_state, batch, *, net: PolicyValueNet, optimizer: optax.GradientTransformation):
+    grads, (policy, value_loss) = jax.grad(loss_fn, has_aux=True)(params, net, *batch)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, policy, value_loss
+
+
+class Learner:
+    def __init__(self, task: Task, net_config: NetConfig, config: LearnerConfig, key: jax.Array):
+        """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is."""
+        self.task = task
+        self.net = PolicyValueNet(net_config)
+        self.net_config = net_config
+        self.config = config
+        self.optimizer = optax.adam(config.learning_rate)
+        init_key, self.key = jax.random.split(key)
+        self.params = init_params(net_config, init_key)
+        self.opt_state = self.optimizer.init(self.params)
+        self.step = 0
+        self._canvas_idx = canvas_index(task, net_config.canvas)
+
+    def prepare(self, sample: dict[str, np.ndarray]) -> tuple:
+        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z)."""
+        m = sample["chunks"].shape[1]
+        planes = encode_batch(self.task, sample["labels"], sample["placed"], self.net_config.canvas)
+        chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
+        valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
+        return planes, chunks, valid, sample["pi"], sample["z"]
+
+    def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
+        self.params, self.opt_state, policy, value_loss = update_step(
+            self.params, self.opt_state, self.prepare(sample), net=self.net, optimizer=self.optimizer)
+        self.step += 1
+        return {"policy": float(policy), "value": float(value_loss)}
+
+    def state(self) -> dict:
+        """Everything a resume needs, as one pytree."""
+        return {"params": self.params, "opt_state": self.opt_state, "step": np.int64(self.step),
+                "key": np.asarray(self.key)}
+
+    def load_state(self, state: dict) -> None:
+        self.params = state["params"]
+        self.opt_state = state["opt_state"]
+        self.step = int(state["step"])
+        self.key = jnp.asarray(state["key"], jnp.uint32)

@@ -1,0 +1,53 @@
+"""A replay buffer of self-play transitions, bounded in transitions, stored as compact arrays."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rllock.mcts import Episode
+
+
+class ReplayBuffer:
+    """A ring buffer: the oldest transitions are overwritten once `capacity` is reached."""
+
+    def __init__(self, capacity: int, n_voxels: int, candidates: int, piece_size: int):
+        self.capacity = capacity
+        self.labels = np.zeros((capacity, n_voxels), np.int16)
+        self.placed = np.zeros(capacity, np.int16)
+        self.chunks = np.zeros((capacity, candidates, piece_size), np.int16)
+        self.num_valid = np.zeros(capacity, np.int16)
+        self.pi = np.zeros((capacity, candidates), np.float32)
+        self.z = np.zeros(capacity, np.float32)
+        self.size = 0
+        self.cursor = 0
+        self.added = 0  # transitions ever added
+        self.last_version = -1  # weights version of the latest episodes
+
+    def add(self, episode: Episode) -> None:
+        for t in range(len(episode.z)):
+            i = self.cursor
+            self.labels[i] = episode.labels[t]
+            self.placed[i] = episode.placed[t]
+            self.chunks[i] = episode.chunks[t]
+            self.num_valid[i] = episode.num_valid[t]
+            self.pi[i] = episode.pi[t]
+            self.z[i] = episode.z[t]
+            self.cursor = (i + 1) % self.capacity
+            self.size = min(self.size + 1, self.capacity)
+            self.added += 1
+
+    def add_many(self, episodes: list[Episode], version: int) -> None:
+        for episode in episodes:
+            self.add(episode)
+        self.last_version = version
+
+    def sample(self, batch: int, seed: int) -> dict[str, np.ndarray]:
+        idx = np.random.default_rng(seed).integers(0, self.size, size=batch)
+        return {"labels": self.labels[idx], "placed": self.placed[idx], "chunks": self.chunks[idx],
+                "num_valid": self.num_valid[idx], "pi": self.pi[idx], "z": self.z[idx]}
+
+    def __len__(self) -> int:
+        return self.size
+
+    def stats(self) -> dict[str, int]:
+        return {"size": self.size, "added": self.added, "capacity": self.capacity}

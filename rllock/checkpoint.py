@@ -1,0 +1,109 @@
+"""Orbax checkpoints of the learner, and what they remember about their task.
+
+A training run's log directory holds `checkpoints/<step>/` (the latest few) and `best/<step>/` (the
+checkpoint with the best validation success rate). Each step directory has `state/` (params, optimizer
+state, step, PRNG key: an orbax StandardSave, restored device-independently against an abstract tree
+built on this host) and `meta/metadata` (JSON: the task, the configs, the validation score).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import orbax.checkpoint as ocp
+
+from rllock.env import Task, make_task
+from rllock.errors import RLLockError
+from rllock.shapes import from_xfastest, to_xfastest
+from rllock.verify import CHECKER_VERSION
+
+FORMAT = "rllock-checkpoint"
+
+
+def task_identity(task: Task, canvas: int) -> dict:
+    """What a checkpoint is for: loading it for anything else is an error."""
+    grid = task.topology.grid
+    return {
+        "shape": task.shape_name,
+        "dimensions": list(grid.shape),
+        "grid": [int(v) for v in to_xfastest(grid.astype(np.int8))],
+        "grid_sha256": hashlib.sha256(np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")).hexdigest(),
+        "pieces": task.pieces,
+        "removal": task.removal,
+        "canvas": canvas,
+        "checker_version": CHECKER_VERSION,
+    }
+
+
+def task_from_identity(identity: dict) -> Task:
+    grid = from_xfastest(np.asarray(identity["grid"]), tuple(identity["dimensions"])) != 0
+    return make_task(grid, int(identity["pieces"]), identity["removal"], name=identity["shape"])
+
+
+def check_same_task(saved: dict, wanted: dict, where: Path) -> None:
+    for key in ("grid_sha256", "pieces", "removal", "canvas", "checker_version"):
+        if saved.get(key) != wanted.get(key):
+            raise RLLockError(
+                f"checkpoint {where} was made for another task: {key} is {saved.get(key)!r} there, "
+                f"{wanted.get(key)!r} here (shape {saved.get('shape')!r}, K={saved.get('pieces')})"
+            )
+
+
+def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(
+        directory.absolute(),
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+        item_names=("state", "meta"),
+    )
+
+
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None:
+    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+              force=True)
+    mngr.wait_until_finished()
+
+
+@dataclass(frozen=True)
+class Loaded:
+    path: Path  # the step directory
+    state: Any
+    meta: dict
+
+
+def find_step_dir(path: Path) -> Path:
+    """A step directory from a run's log directory (its best checkpoint, else its latest), a
+    checkpoints folder (its latest step), or a step directory itself."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RLLockError(f"no such checkpoint directory: {path}")
+    if (path / "meta").is_dir() and (path / "state").is_dir():
+        return path
+    for folder in (path / "best", path / "checkpoints", path):
+        steps = sorted((int(p.name), p) for p in folder.glob("*") if p.name.isdigit() and p.is_dir()) if folder.is_dir() else []
+        if steps:
+            return steps[-1][1]
+    raise RLLockError(f"{path} holds no RL-Lock checkpoint (expected best/, checkpoints/ or a step directory)")
+
+
+def read_meta(step_dir: Path) -> dict:
+    try:
+        meta = json.loads((step_dir / "meta" / "metadata").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {exc}") from None
+    if meta.get("format") != FORMAT:
+        raise RLLockError(f"{step_dir} is not an RL-Lock checkpoint")
+    return meta
+
+
+def restore(step_dir: Path, abstract_state: Any) -> Any:
+    """The state saved in `step_dir`, laid out like `abstract_state` on this host's devices."""
+    try:
+        return ocp.StandardCheckpointer().restore((step_dir / "state").absolute(), abstract_state)
+    except Exception as exc:  # orbax raises many kinds of errors for damaged files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {first[:200]}") from None
