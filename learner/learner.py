@@ -69,7 +69,7 @@ class Learner:
 
     def state(self) -> dict:
         """Everything a resume needs, as one pytree."""
-        return {"params": self.params, "opt_state": self.opt_state, "step": np.int64(self.step),
+        return {"params": self.params, "opt_state": self.opt_state, "step": np.asarray(self.step, dtype=np.int64),
                 "key": np.asarray(self.key)}
 
     def load_state(self, state: dict) -> None:

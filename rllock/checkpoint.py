@@ -63,6 +63,9 @@ def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None:
+    """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
+    if step in mngr.all_steps():
+        mngr.delete(step)
     mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
               force=True)
     mngr.wait_until_finished()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -118,6 +119,142 @@ def cmd_bench_solve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] = ()) -> None:
+    """One --flag per field of a config dataclass, typed by its default; the field docstrings live in
+    the dataclass (cleanrl style: one typed config per program)."""
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default
+        if f.name in ("shape", "pieces"):
+            p.add_argument(flag, required=True, type=str if f.name == "shape" else int)
+        elif isinstance(default, tuple):
+            p.add_argument(flag, default=default, type=lambda t: tuple(int(v) for v in t.split(",")),
+                           help=f"comma-separated (default {','.join(map(str, default))})")
+        elif f.name == "removal":
+            p.add_argument(flag, default=default, choices=REMOVAL_MODES)
+        elif default is None:
+            p.add_argument(flag, default=None, type=int if f.name == "resolution" else str)
+        else:
+            p.add_argument(flag, default=default, type=type(default), help=f"default {default}")
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from rllock.train import TrainConfig, train
+
+    config = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+    if config.minutes <= 0 or config.pieces < 2:
+        raise RLLockError("--minutes must be positive and --pieces at least 2")
+    result = train(config)
+    val = result["validation"]
+    sys.stdout.write(
+        f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
+        f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
+        f"{result['seconds']:.0f} s; last validation {100 * val['success_rate']:.1f}% valid, best "
+        f"{100 * result['best_success_rate']:.1f}%\n"
+        f"checkpoints: {result['logdir']}/best (best) and {result['logdir']}/checkpoints (latest)\n"
+        f"watch it: tensorboard --logdir {result['logdir']}\n")
+    return 0
+
+
+def _expected_task(args: argparse.Namespace, policy_canvas: int) -> dict | None:
+    """The identity of the task named on the command line, if one was named."""
+    if args.shape is None and args.pieces is None:
+        return None
+    if args.shape is None or args.pieces is None:
+        raise RLLockError("give both --shape and --pieces to check the checkpoint's task, or neither")
+    from rllock.checkpoint import task_identity
+    from rllock.env import make_task
+
+    return task_identity(make_task(args.shape, args.pieces, args.removal), policy_canvas)
+
+
+def _load_for(args: argparse.Namespace):
+    from rllock.checkpoint import find_step_dir, read_meta
+    from rllock.generate import load_policy
+
+    meta = read_meta(find_step_dir(Path(args.checkpoint)))
+    return load_policy(args.checkpoint, _expected_task(args, meta["task"]["canvas"]))
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from rllock.generate import generate
+
+    policy = _load_for(args)
+    result = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed,
+                      out=Path(args.out))
+    task = policy.task
+    if result.valid == 0:
+        sys.stdout.write(f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
+                         f"episodes ({result.seconds:.1f} s)\n")
+        return 1
+    sys.stdout.write(f"generate: {result.valid} valid assemblies of {task.shape_name} K={task.pieces} from "
+                     f"{result.episodes} episodes in {result.seconds:.1f} s: {result.time_per_valid_s:.2f} s per "
+                     f"valid assembly -> {args.out}\n")
+    return 0
+
+
+def cmd_bench_learning(args: argparse.Namespace) -> int:
+    from rllock.generate import generate, untrained_like
+
+    trained = _load_for(args)
+    rows = {}
+    for name, policy in (("trained", trained), ("untrained", untrained_like(trained, args.seed))):
+        r = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed)
+        rows[name] = {"valid": r.valid, "episodes": r.episodes, "seconds": r.seconds,
+                      "success_rate": r.success_rate, "time_per_valid_s": r.time_per_valid_s}
+        log.info("%s: %d valid of %d episodes in %.1f s", name, r.valid, r.episodes, r.seconds)
+    t, u = rows["trained"]["time_per_valid_s"], rows["untrained"]["time_per_valid_s"]
+    ratio = None if t is None or u is None else t / u
+    doc = {"checkpoint": trained.source, "step": trained.step, "task": f"{trained.task.shape_name} K={trained.task.pieces}",
+           **rows, "ratio_trained_over_untrained": ratio}
+    if args.json:
+        sys.stdout.write(json.dumps(doc) + "\n")
+    else:
+        def fmt(v):
+            return "none found" if v is None else f"{v:.2f} s"
+        sys.stdout.write(
+            f"learning ({doc['task']}, step {trained.step}, batches of {args.batch}, seed {args.seed}):\n"
+            f"  trained:   {fmt(t)} per valid, success rate {100 * rows['trained']['success_rate']:.1f}% "
+            f"({rows['trained']['valid']}/{rows['trained']['episodes']})\n"
+            f"  untrained: {fmt(u)} per valid, success rate {100 * rows['untrained']['success_rate']:.1f}% "
+            f"({rows['untrained']['valid']}/{rows['untrained']['episodes']})\n"
+            f"  ratio trained/untrained: {'-' if ratio is None else f'{ratio:.3f}'}\n")
+    return 0
+
+
+def cmd_bench_selfplay(args: argparse.Namespace) -> int:
+    from rllock.bench_selfplay import bench_selfplay
+
+    try:
+        counts = [int(c) for c in args.actors.split(",")]
+    except ValueError:
+        raise RLLockError(f"--actors takes a comma-separated list of counts, got {args.actors!r}") from None
+    rows = bench_selfplay(args, counts)
+    if args.json:
+        sys.stdout.write(json.dumps({"rows": rows}) + "\n")
+    else:
+        base = rows[0]["episodes_per_sec"]
+        for r in rows:
+            sys.stdout.write(f"{r['actors']} actor(s): {r['episodes_per_sec']:.3f} episodes/s, "
+                             f"{r['simulations_per_sec']:.0f} simulations/s, x{r['episodes_per_sec'] / base:.2f} "
+                             f"vs {rows[0]['actors']}\n")
+    return 0
+
+
+def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="a training run's log directory (its best checkpoint) "
+                   "or one checkpoint directory")
+    p.add_argument("--count", type=int, default=5, help="valid assemblies to find")
+    p.add_argument("--batch", type=int, default=64, help="episodes per batch (one network call per simulation)")
+    p.add_argument("--time-limit", type=_positive_float, default=3600.0, help="seconds")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
+    p.add_argument("--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rllock", description="Interlocking assemblies from voxel shapes.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -154,6 +291,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_solve)
 
+    from rllock.train import TrainConfig
+
+    p = sub.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
+    _add_dataclass_args(p, TrainConfig)
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("generate", help="assemblies from a trained checkpoint (batched MCTS)")
+    _add_checkpoint_args(p)
+    p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
+    p.set_defaults(func=cmd_generate)
+
+    p = bench.add_parser("learning", help="a checkpoint against the same search with an untrained network")
+    _add_checkpoint_args(p)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_learning)
+
+    p = bench.add_parser("selfplay", help="self-play episodes and simulations per second for actor counts")
+    p.add_argument("--actors", default="1,2", help="comma-separated actor counts")
+    p.add_argument("--shape", default="cube4")
+    p.add_argument("--pieces", type=int, default=9)
+    p.add_argument("--seconds", type=_positive_float, default=60.0, help="measured seconds per actor count")
+    p.add_argument("--simulations", type=int, default=256)
+    p.add_argument("--canvas", type=int, default=8)
+    p.add_argument("--episodes-per-batch", type=int, default=8)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_selfplay)
+
     add_result_commands(sub)
     return parser
 
@@ -161,8 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    for noisy in ("numba", "jax", "absl", "matplotlib", "PIL"):
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr,
+                        force=True)  # ray/absl install root handlers on import; ours must win
+    for noisy in ("numba", "jax", "absl", "matplotlib", "PIL", "orbax", "ray"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     register_writer(write_picture)  # every assembly the commands write gets its picture beside it
     try:

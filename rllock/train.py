@@ -215,7 +215,10 @@ def _loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logd
         if now >= next_validate:
             last_score, best_rate = _validate(config, task, learner, validator, writer, best_mngr, best_rate)
             next_validate = time.monotonic() + 60 * config.validate_minutes
-    ray.get(list(inflight))  # let the actors finish their batch before the final evaluation
+    for stats in ray.get(list(inflight)):  # batches under way finish before the final evaluation
+        episodes += stats.episodes
+        successes += stats.successes
+        simulations += stats.simulations
     last_score, best_rate = _validate(config, task, learner, validator, writer, best_mngr, best_rate)
     ckpt.save(latest_mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, last_score))
     elapsed = time.monotonic() - start

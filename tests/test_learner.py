@@ -1,0 +1,98 @@
+from __future__ import annotations
+
+import shutil
+
+import jax
+import numpy as np
+import pytest
+
+from learner.learner import Learner, LearnerConfig
+from learner.replay import ReplayBuffer
+from rllock import checkpoint as ckpt
+from rllock.env import make_task
+from rllock.errors import RLLockError
+from rllock.generate import load_policy
+from rllock.mcts import MCTSConfig, Searcher, play
+from rllock.network import NetConfig, PolicyValueNet
+from rllock.train import TrainConfig, checkpoint_meta
+
+NET = NetConfig(canvas=4, features=(4, 8))
+MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
+
+
+@pytest.fixture(scope="module")
+def task_and_episodes():
+    task = make_task("box:4x4x2", 4)
+    searcher = Searcher(PolicyValueNet(NET), MCTS, 4, task.piece_size, batch=8)
+    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(0))
+    return task, play(searcher, learner.params, task, jax.random.PRNGKey(2), batch=8, seed=1, canvas=4)
+
+
+def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
+    task, eps = task_and_episodes
+    total = sum(len(e.z) for e in eps)
+    buf = ReplayBuffer(capacity=total - 3, n_voxels=task.size, candidates=8, piece_size=task.piece_size)
+    buf.add_many(eps, version=4)
+    assert len(buf) == total - 3 and buf.added == total and buf.last_version == 4
+    flat = np.concatenate([e.labels for e in eps])  # every transition, oldest first
+    # Transitions 0..2 were overwritten by the last three, which wrapped around to slots 0..2.
+    assert buf.cursor == 3
+    np.testing.assert_array_equal(buf.labels[:3], flat[-3:])
+    np.testing.assert_array_equal(buf.labels[3:], flat[3:-3])
+    sample = buf.sample(5, seed=0)
+    assert sample["labels"].shape == (5, task.size) and sample["chunks"].dtype == np.int16
+
+
+def test_learner_fits_a_fixed_batch(task_and_episodes):
+    task, eps = task_and_episodes
+    buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
+    buf.add_many(eps, 0)
+    batch = buf.sample(32, seed=0)
+    learner = Learner(task, NET, LearnerConfig(learning_rate=3e-3, batch_size=32), jax.random.PRNGKey(0))
+    first = learner.update(batch)
+    for _ in range(60):
+        last = learner.update(batch)
+    assert learner.step == 61
+    assert np.isfinite(first["policy"]) and last["value"] < first["value"] and last["policy"] < first["policy"]
+
+
+def _save(tmp_path, task, learner):
+    config = TrainConfig(shape="box:4x4x2", pieces=4, canvas=4, features=NET.features,
+                         simulations=MCTS.simulations, max_considered=4, raw_samples=256, candidates=8)
+    mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
+    ckpt.save(mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, None))
+    mngr.close()
+    return tmp_path / "run"
+
+
+def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episodes):
+    task, eps = task_and_episodes
+    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5))
+    buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
+    buf.add_many(eps, 0)
+    learner.update(buf.sample(16, seed=1))
+    run = _save(tmp_path, task, learner)
+    policy = load_policy(run)
+    assert policy.step == 1 and policy.task.pieces == 4
+    assert np.array_equal(policy.task.topology.grid, task.topology.grid)
+    for a, b in zip(jax.tree_util.tree_leaves(policy.params), jax.tree_util.tree_leaves(learner.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and_episodes):
+    task, _ = task_and_episodes
+    run = _save(tmp_path, task, Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5)))
+    other = ckpt.task_identity(make_task("box:4x4x2", 3), 4)
+    with pytest.raises(RLLockError, match="another task: pieces"):
+        load_policy(run, expect=other)
+    step_dir = ckpt.find_step_dir(run)
+    broken = tmp_path / "broken"
+    shutil.copytree(step_dir, broken)
+    for f in (broken / "state").rglob("*"):
+        if f.is_file() and f.stat().st_size > 0 and "ocdbt" not in f.name and f.parent.name == "d":
+            f.write_bytes(b"\0" * 7)
+    with pytest.raises(RLLockError, match="corrupted"):
+        load_policy(broken)
+    (broken / "meta" / "metadata").write_text("{trunc")
+    with pytest.raises(RLLockError, match="corrupted"):
+        load_policy(broken)

@@ -1,0 +1,61 @@
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from rllock.env import final_labels, initial_state, make_task
+from rllock.mcts import MCTSConfig, NodeStore, Searcher, play
+from rllock.network import NetConfig, PolicyValueNet, init_params
+from rllock.verify import verify_labels
+
+SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
+
+
+def test_expansion_rewards_terminals_and_memo():
+    task = make_task("box:4x4x2", 4)  # n = 8
+    store = NodeStore(task, SMALL, 4, seed=0)
+    root = store.add(initial_state(task))
+    assert 0 < len(store.cands[root]) <= SMALL.candidates
+    kids, reward, discount, planes, chunks, valid = store.expand(np.array([root, root]), np.array([0, 0]))
+    assert kids[0] == kids[1] and store.child(root, 0) == kids[0]  # the same (node, action) -> one node
+    np.testing.assert_allclose(reward, 1 / 4)
+    assert planes.shape == (2, 4, 4, 4, 7) and valid[0].sum() == len(store.cands[kids[0]])
+    # An action past the candidates, or any action below a terminal node, earns nothing and stays put.
+    bad = len(store.cands[root])
+    if bad < SMALL.candidates:
+        k, r, d, *_ = store.expand(np.array([root]), np.array([bad]))
+        assert (k[0], r[0], d[0]) == (root, 0.0, 0.0)
+    dead = store.add(initial_state(task))
+    store.cands[dead] = store.cands[dead][:0]
+    k, r, d, *_ = store.expand(np.array([dead]), np.array([0]))
+    assert (k[0], r[0], d[0]) == (dead, 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    task = make_task("box:4x4x2", 3)
+    config = NetConfig(canvas=4, features=(4, 8))
+    searcher = Searcher(PolicyValueNet(config), SMALL, 4, task.piece_size, batch=6)
+    params = init_params(config, jax.random.PRNGKey(0))
+    return task, play(searcher, params, task, jax.random.PRNGKey(1), batch=6, seed=3, canvas=4)
+
+
+def test_episode_records_are_consistent(episodes):
+    task, eps = episodes
+    assert len(eps) == 6 and any(e.success for e in eps)
+    for e in eps:
+        t = len(e.z)
+        assert t >= 1 and list(e.placed) == list(range(t))
+        np.testing.assert_allclose(e.z, (e.final.placed - e.placed) / task.pieces)
+        for s in range(t):
+            m = e.num_valid[s]
+            assert m > 0 and np.isclose(e.pi[s, :m].sum(), 1, atol=1e-5) and np.allclose(e.pi[s, m:], 0)
+        assert e.success == (e.final.placed == task.pieces - 1)
+
+
+def test_successful_episodes_are_valid_assemblies(episodes):
+    task, eps = episodes
+    for e in eps:
+        if e.success:
+            assert verify_labels(task.topology.to_grid(final_labels(task, e.final))).valid

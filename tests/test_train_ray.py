@@ -1,0 +1,64 @@
+"""The whole trainer on a real local Ray instance (num_cpus=2), on a tiny task, then generate from it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import ray
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from rllock.errors import RLLockError
+from rllock.train import TrainConfig, train
+
+from conftest import run_cli
+
+TINY = dict(shape="box:4x4x2", pieces=3, canvas=4, features=(4, 8), simulations=8, max_considered=4,
+            raw_samples=256, candidates=8, episodes_per_batch=4, min_buffer=8, batch_size=16,
+            publish_every=5, validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1, actors=1)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    logdir = tmp_path_factory.mktemp("run")
+    ray.init(num_cpus=2, include_dashboard=False)
+    try:
+        result = train(TrainConfig(minutes=1.0, logdir=str(logdir), learning_rate=1e-3, **TINY))
+    finally:
+        ray.shutdown()
+    return logdir, result
+
+
+def test_training_writes_checkpoints_and_event_files(run):
+    logdir, result = run
+    assert result["steps"] > 0 and result["episodes"] > 0
+    latest = sorted(int(p.name) for p in (logdir / "checkpoints").iterdir() if p.name.isdigit())
+    best = [p for p in (logdir / "best").iterdir() if p.name.isdigit()]
+    assert latest and latest[-1] == result["steps"] and len(best) == 1
+    meta = json.loads((logdir / "checkpoints" / str(latest[-1]) / "meta" / "metadata").read_text())
+    assert meta["task"]["pieces"] == 3 and meta["step"] == result["steps"]
+    events = EventAccumulator(str(logdir))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"losses/policy", "losses/value", "validation/success_rate", "charts/episodes_per_sec"} <= tags
+    losses = [e.value for e in events.Scalars("losses/policy")] + [e.value for e in events.Scalars("losses/value")]
+    assert losses and all(math.isfinite(v) for v in losses)
+
+
+def test_generate_from_the_run_writes_verified_assemblies(run, tmp_path):
+    logdir, _ = run
+    code, out, err = run_cli("generate", "--checkpoint", str(logdir), "--count", "1", "--batch", "8",
+                             "--time-limit", "120", "--out", str(tmp_path / "gen"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "gen" / "assembly_001" / "assembly.json").read_text())
+    assert doc["verification"]["valid"] and doc["method"]["name"] == "rl-lock" and doc["K"] == 3
+    code, _, err = run_cli("generate", "--checkpoint", str(logdir), "--shape", "box:4x4x2", "--pieces", "4",
+                           "--out", str(tmp_path / "other"))
+    assert code == 2 and "another task" in err and "Traceback" not in err
+
+
+def test_a_used_logdir_is_refused(run):
+    logdir, _ = run
+    with pytest.raises(RLLockError, match="already holds"):
+        train(TrainConfig(minutes=0.1, logdir=str(logdir), **TINY))
