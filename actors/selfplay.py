@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -54,6 +55,7 @@ class PlayStats:
     simulations: int
     seconds: float
     version: int
+    pid: int  # the actor's process, to notice restarts
 
 
 def evaluate(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, seed: int,
@@ -88,7 +90,7 @@ class SelfPlayWorker:
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(len(episodes), sum(e.success for e in episodes),
-                          decisions * self.config.mcts.simulations, seconds, self.version)
+                          decisions * self.config.mcts.simulations, seconds, self.version, os.getpid())
         return episodes, stats
 
 

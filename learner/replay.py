@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 
 from rllock.mcts import Episode
@@ -48,6 +51,27 @@ class ReplayBuffer:
 
     def __len__(self) -> int:
         return self.size
+
+    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z")
+
+    def snapshot(self, path: str) -> None:
+        """Write the buffer to `path` atomically (a temporary file renamed over it)."""
+        tmp = Path(path).with_suffix(".tmp.npz")
+        np.savez(tmp, size=self.size, cursor=self.cursor, added=self.added,
+                 **{name: getattr(self, name)[: self.size] for name in self._ARRAYS})
+        os.replace(tmp, path)
+
+    def restore(self, path: str) -> int:
+        """Load a snapshot written by `snapshot` (same capacity or larger); returns its size."""
+        with np.load(path) as data:
+            size = int(data["size"])
+            if size > self.capacity:
+                raise ValueError(f"snapshot holds {size} transitions, capacity is {self.capacity}")
+            for name in self._ARRAYS:
+                getattr(self, name)[:size] = data[name]
+            self.size, self.added = size, int(data["added"])
+            self.cursor = int(data["cursor"]) % self.capacity
+        return size
 
     def stats(self) -> dict[str, int]:
         return {"size": self.size, "added": self.added, "capacity": self.capacity}

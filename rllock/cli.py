@@ -128,7 +128,8 @@ def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] =
         flag = "--" + f.name.replace("_", "-")
         default = f.default
         if f.name in ("shape", "pieces"):
-            p.add_argument(flag, required=True, type=str if f.name == "shape" else int)
+            p.add_argument(flag, default=None, type=str if f.name == "shape" else int,
+                           help="required unless --resume")
         elif isinstance(default, tuple):
             p.add_argument(flag, default=default, type=lambda t: tuple(int(v) for v in t.split(",")),
                            help=f"comma-separated (default {','.join(map(str, default))})")
@@ -141,12 +142,22 @@ def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] =
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from rllock.train import TrainConfig, train
+    from rllock.train import TrainConfig, load_resume, train
 
-    config = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+    if args.resume:
+        default_minutes = next(f.default for f in dataclasses.fields(TrainConfig) if f.name == "minutes")
+        config = load_resume(Path(args.resume), args.minutes if args.minutes != default_minutes else None)
+    else:
+        if args.shape is None or args.pieces is None:
+            raise RLLockError("train needs --shape and --pieces (or --resume LOGDIR)")
+        config = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
     if config.minutes <= 0 or config.pieces < 2:
         raise RLLockError("--minutes must be positive and --pieces at least 2")
-    result = train(config)
+    result = train(config, resume=bool(args.resume))
+    if result["interrupted"]:
+        sys.stdout.write(f"train: stopped at learner step {result['steps']}; resume with: "
+                         f"rllock train --resume {result['logdir']}\n")
+        return 130
     val = result["validation"]
     sys.stdout.write(
         f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
@@ -295,6 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
     _add_dataclass_args(p, TrainConfig)
+    p.add_argument("--resume", metavar="LOGDIR", default=None,
+                   help="continue the run in LOGDIR (its config; --minutes sets the time to add)")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("generate", help="assemblies from a trained checkpoint (batched MCTS)")

@@ -3,10 +3,18 @@
 Data flow: each actor plays a lockstep batch of episodes with the weights version it was handed, pushes
 the episodes into the replay buffer actor (waiting for it: bounded in-flight data), and returns its
 statistics; this process then hands it the newest weights (one `ray.put` per version, fetched by an actor
-only when the version changed). Exactly one batch is in flight per actor. The learner samples
+only when the version changed). Exactly one batch is in flight per actor, and the learner stops
+publishing while the oldest batch in flight is `max_policy_lag` versions behind. The learner samples
 mini-batches once the buffer holds `min_buffer` transitions, at most `replay_ratio` sampled transitions
-per transition produced, validates on fixed seeds every `validate_minutes`, keeps the best checkpoint in
-`LOGDIR/best/`, the latest ones in `LOGDIR/checkpoints/`, and TensorBoard event files in LOGDIR.
+per transition produced, validates on fixed seeds every `validate_minutes`, and keeps:
+  LOGDIR/checkpoints/<step>/  the latest checkpoints (orbax: learner state + metadata with the counters)
+  LOGDIR/best/<step>/         the checkpoint with the best validation success rate
+  LOGDIR/best_assembly/       the best validation assembly so far (verified), with its picture
+  LOGDIR/replay.npz           the replay buffer, snapshotted atomically with every checkpoint
+  LOGDIR/config.json, TensorBoard event files
+`rllock train --resume LOGDIR` continues from the newest readable checkpoint (an unreadable one is
+skipped with a warning) with its optimizer state, PRNG key, counters, best score and replay buffer.
+Ctrl-C stops cleanly: a final checkpoint and snapshot, then Ray is shut down.
 """
 
 from __future__ import annotations
@@ -14,22 +22,28 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import jax
+import numpy as np
 import ray
+from PIL import Image
+from ray.exceptions import RayActorError
 from tensorboardX import SummaryWriter
 
 from actors.selfplay import ACTOR_ENV, SelfPlayActor, SelfPlayConfig, TaskSpec, evaluate
 from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
 from rllock import checkpoint as ckpt
-from rllock.env import Task, make_task
+from rllock.assembly import write_assembly
+from rllock.env import Task, final_labels, make_task
 from rllock.errors import RLLockError
 from rllock.mcts import MCTSConfig, Searcher
 from rllock.network import NetConfig, PolicyValueNet, check_fits
+from rllock.render import draw_png
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +60,7 @@ class TrainConfig:
     actors: int = 0
     """Self-play actors; 0 = one per CPU core left after the learner's."""
     minutes: float = 10.0
-    """Wall-clock training time."""
+    """Wall-clock training time (on resume: the time to add)."""
     logdir: str = "runs/latest"
     seed: int = 0
     address: str | None = None
@@ -68,6 +82,8 @@ class TrainConfig:
     """At most this many sampled transitions per transition produced by self-play."""
     publish_every: int = 25
     """Learner steps between weight versions."""
+    max_policy_lag: int = 4
+    """Weight versions an in-flight self-play batch may fall behind before the learner waits."""
     validate_minutes: float = 5.0
     validation_episodes: int = 64
     checkpoint_minutes: float = 2.0
@@ -82,12 +98,34 @@ class TrainConfig:
     def learner(self) -> LearnerConfig:
         return LearnerConfig(learning_rate=self.learning_rate, batch_size=self.batch_size)
 
+    @staticmethod
+    def from_json(doc: dict) -> "TrainConfig":
+        known = {f.name for f in fields(TrainConfig)}
+        values = {k: v for k, v in doc.items() if k in known}
+        values["features"] = tuple(values.get("features", (16, 32, 64)))
+        return TrainConfig(**values)
 
-def checkpoint_meta(config: TrainConfig, task: Task, step: int, validation: dict | None) -> dict:
+
+@dataclass
+class Counters:
+    """Run totals that survive a resume (saved in every checkpoint's metadata)."""
+
+    episodes: int = 0
+    successes: int = 0
+    simulations: int = 0
+    transitions: int = 0
+    seconds: float = 0.0
+    best_rate: float = -1.0
+    version: int = 0
+
+
+def checkpoint_meta(config: TrainConfig, task: Task, step: int, validation: dict | None,
+                    counters: Counters | None = None) -> dict:
     return {
         "format": ckpt.FORMAT, "version": 1, "step": step, "task": ckpt.task_identity(task, config.canvas),
         "train": asdict(config), "net": asdict(config.net()), "mcts": asdict(config.mcts()),
         "learner": asdict(config.learner()), "validation": validation,
+        "counters": asdict(counters or Counters()),
     }
 
 
@@ -99,13 +137,16 @@ class Validator:
     task: Task
     config: TrainConfig
 
-    def __call__(self, params) -> dict:
+    def __call__(self, params) -> tuple[dict, np.ndarray | None]:
+        """The score, and the label grid of one valid assembly found (None if none)."""
         episodes, seconds = evaluate(self.searcher, params, self.task, jax.random.PRNGKey(self.config.seed + 7),
                                      batch=self.config.validation_episodes, seed=self.config.seed + 7,
                                      canvas=self.config.canvas)
         wins = [e for e in episodes if e.success]
-        return {"success_rate": len(wins) / len(episodes), "valid": len(wins), "episodes": len(episodes),
-                "seconds": seconds, "time_per_valid_s": seconds / len(wins) if wins else None}
+        score = {"success_rate": len(wins) / len(episodes), "valid": len(wins), "episodes": len(episodes),
+                 "seconds": seconds, "time_per_valid_s": seconds / len(wins) if wins else None}
+        grid = self.task.topology.to_grid(final_labels(self.task, wins[0].final)) if wins else None
+        return score, grid
 
 
 def _start_ray(config: TrainConfig) -> bool:
@@ -114,8 +155,8 @@ def _start_ray(config: TrainConfig) -> bool:
         return False
     if config.address:
         ray.init(address=config.address, logging_level=logging.WARNING)
-        return True
-    ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING)
+    else:
+        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING)
     return True
 
 
@@ -125,117 +166,227 @@ def _actor_count(config: TrainConfig) -> int:
     return max(1, int(ray.cluster_resources().get("CPU", 2)) - 1)
 
 
-def train(config: TrainConfig) -> dict:
+def load_resume(logdir: Path, minutes: float | None) -> TrainConfig:
+    """The config of the run in `logdir` (with `minutes` more to train, if given)."""
+    try:
+        doc = json.loads((logdir / "config.json").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RLLockError(f"cannot resume {logdir}: no readable config.json ({exc})") from None
+    config = TrainConfig.from_json(doc)
+    values = asdict(config) | {"logdir": str(logdir)} | ({"minutes": minutes} if minutes else {})
+    return TrainConfig(**values)
+
+
+def _restore_latest(logdir: Path, learner: Learner) -> dict:
+    """Load the newest readable checkpoint into `learner`; returns its metadata."""
+    steps = sorted((int(p.name) for p in (logdir / "checkpoints").glob("*") if p.name.isdigit()), reverse=True)
+    if not steps:
+        raise RLLockError(f"cannot resume {logdir}: it holds no checkpoint")
+    abstract = jax.tree_util.tree_map(ckpt.ocp.utils.to_shape_dtype_struct, learner.state())
+    for step in steps:
+        step_dir = logdir / "checkpoints" / str(step)
+        try:
+            meta = ckpt.read_meta(step_dir)
+            learner.load_state(ckpt.restore(step_dir, abstract))
+        except RLLockError as exc:
+            log.warning("%s; falling back to the checkpoint before it", exc)
+            continue
+        return meta
+    raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
+
+
+def train(config: TrainConfig, *, resume: bool = False) -> dict:
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
     check_fits(task, config.net())
     logdir = Path(config.logdir)
-    if (logdir / "checkpoints").exists():
-        raise RLLockError(f"{logdir} already holds a training run; choose another --logdir")
+    learner = Learner(task, config.net(), config.learner(), jax.random.PRNGKey(config.seed))
+    counters = Counters()
+    last_score = None
+    if resume:
+        meta = _restore_latest(logdir, learner)
+        ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.canvas), logdir)
+        counters = Counters(**meta.get("counters", {}))
+        last_score = meta.get("validation")
+        log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
+    elif (logdir / "checkpoints").exists():
+        raise RLLockError(f"{logdir} already holds a training run; resume it with --resume {logdir} "
+                          f"or choose another --logdir")
     logdir.mkdir(parents=True, exist_ok=True)
     (logdir / "config.json").write_text(json.dumps(asdict(config), indent=1))
-    writer = SummaryWriter(str(logdir))
-    writer.add_text("config", "```\n" + json.dumps(asdict(config), indent=1) + "\n```", 0)
+    # purge_step drops events logged after the checkpoint we resume from, so the curves do not fork.
+    writer = SummaryWriter(str(logdir), purge_step=learner.step if resume else None)
+    writer.add_text("config", "```\n" + json.dumps(asdict(config), indent=1) + "\n```", learner.step)
     latest_mngr = ckpt.manager(logdir / "checkpoints", keep=3)
     best_mngr = ckpt.manager(logdir / "best", keep=1)
-    learner = Learner(task, config.net(), config.learner(), jax.random.PRNGKey(config.seed))
     validator = Validator(Searcher(PolicyValueNet(config.net()), config.mcts(), config.canvas, task.piece_size,
                                    config.validation_episodes), task, config)
     started_ray = _start_ray(config)
+    loop = _Loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logdir, counters, last_score)
+    previous = signal.signal(signal.SIGINT, loop.request_stop)
     try:
-        return _loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logdir)
+        return loop.run()
     finally:
+        signal.signal(signal.SIGINT, previous)
         writer.close()
         latest_mngr.close()
         best_mngr.close()
         if started_ray:
             ray.shutdown()
+        if loop.interrupted:
+            log.warning("stopped by Ctrl-C at learner step %d; checkpoint saved. Resume with: "
+                        "rllock train --resume %s", learner.step, logdir)
 
 
-def _loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logdir) -> dict:
-    spec = TaskSpec.of(task)
-    play_config = SelfPlayConfig(config.episodes_per_batch, config.mcts(), config.net())
-    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
-        config.buffer_capacity, task.size, config.candidates, task.piece_size)
-    n_actors = _actor_count(config)
-    actors = [SelfPlayActor.options(runtime_env={"env_vars": ACTOR_ENV}).remote(
-        spec, play_config, config.seed * 1000 + i + 1, buffer) for i in range(n_actors)]
-    log.info("training %s K=%d with %d self-play actor(s) for %g min; logs in %s", task.shape_name,
-             task.pieces, n_actors, config.minutes, logdir)
-    version = 0
-    weights = [ray.put(jax.device_get(learner.params))]
-    inflight = {actor.run.remote(weights, version): actor for actor in actors}
-    start = time.monotonic()
-    deadline = start + 60 * config.minutes
-    episodes = successes = simulations = transitions = 0
-    next_validate = start + 60 * config.validate_minutes
-    next_checkpoint = start + 60 * config.checkpoint_minutes
-    next_report = start + 30
-    best_rate, last_score = -1.0, None
-    lag = 0
-    while time.monotonic() < deadline:
-        can_learn = transitions >= config.min_buffer and (
-            (learner.step + 1) * config.batch_size <= config.replay_ratio * transitions)
-        ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0 if can_learn else 1.0)
-        for ref in ready:
-            actor = inflight.pop(ref)
-            stats = ray.get(ref)
-            episodes += stats.episodes
-            successes += stats.successes
-            simulations += stats.simulations
-            lag = version - stats.version
-            transitions = ray.get(buffer.stats.remote())["added"]
-            inflight[actor.run.remote(weights, version)] = actor
-        if can_learn:
-            sample = ray.get(buffer.sample.remote(config.batch_size, config.seed * 7919 + learner.step))
-            losses = learner.update(sample)
-            if learner.step % config.publish_every == 0:
-                version += 1
-                weights = [ray.put(jax.device_get(learner.params))]
-            if learner.step % 10 == 0:
-                writer.add_scalar("losses/policy", losses["policy"], learner.step)
-                writer.add_scalar("losses/value", losses["value"], learner.step)
-                writer.add_scalar("losses/total", losses["policy"] + losses["value"], learner.step)
-        now = time.monotonic()
-        if now >= next_report or ready:
-            elapsed = now - start
-            writer.add_scalar("charts/episodes_per_sec", episodes / elapsed, learner.step)
-            writer.add_scalar("charts/simulations_per_sec", simulations / elapsed, learner.step)
-            writer.add_scalar("charts/learner_steps_per_sec", learner.step / elapsed, learner.step)
-            writer.add_scalar("charts/policy_lag", lag, learner.step)
-            writer.add_scalar("charts/selfplay_success_rate", successes / max(episodes, 1), learner.step)
-            writer.add_scalar("buffer/size", min(transitions, config.buffer_capacity), learner.step)
-        if now >= next_report:
-            log.info("step %d | episodes %d | self-play success %.1f%% | validation %s | %.0f s", learner.step,
-                     episodes, 100 * successes / max(episodes, 1),
-                     "-" if last_score is None else f"{100 * last_score['success_rate']:.1f}%", now - start)
-            next_report = now + 30
-        if now >= next_checkpoint:
-            ckpt.save(latest_mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, last_score))
-            next_checkpoint = now + 60 * config.checkpoint_minutes
-        if now >= next_validate:
-            last_score, best_rate = _validate(config, task, learner, validator, writer, best_mngr, best_rate)
-            next_validate = time.monotonic() + 60 * config.validate_minutes
-    for stats in ray.get(list(inflight)):  # batches under way finish before the final evaluation
-        episodes += stats.episodes
-        successes += stats.successes
-        simulations += stats.simulations
-    last_score, best_rate = _validate(config, task, learner, validator, writer, best_mngr, best_rate)
-    ckpt.save(latest_mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, last_score))
-    elapsed = time.monotonic() - start
-    return {"steps": learner.step, "episodes": episodes, "selfplay_success_rate": successes / max(episodes, 1),
-            "validation": last_score, "best_success_rate": best_rate, "seconds": elapsed,
-            "episodes_per_sec": episodes / elapsed, "simulations_per_sec": simulations / elapsed,
-            "actors": len(inflight), "logdir": str(logdir)}
+class _Loop:
+    """The actor-learner loop's state: what a checkpoint must capture, in one place."""
 
+    def __init__(self, config, task, learner, validator, writer, latest_mngr, best_mngr, logdir, counters,
+                 last_score):
+        self.config, self.task, self.learner, self.validator = config, task, learner, validator
+        self.writer, self.latest_mngr, self.best_mngr, self.logdir = writer, latest_mngr, best_mngr, logdir
+        self.counters, self.last_score = counters, last_score
+        self.interrupted = False
+        self.lag = 0
 
-def _validate(config, task, learner, validator, writer, best_mngr, best_rate):
-    score = validator(learner.params)
-    writer.add_scalar("validation/success_rate", score["success_rate"], learner.step)
-    if score["time_per_valid_s"] is not None:
-        writer.add_scalar("validation/time_per_valid_s", score["time_per_valid_s"], learner.step)
-    log.info("validation at step %d: %d/%d valid (%.1f%%)", learner.step, score["valid"], score["episodes"],
-             100 * score["success_rate"])
-    if score["success_rate"] > best_rate or best_mngr.latest_step() is None:
-        ckpt.save(best_mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, score))
-        best_rate = max(best_rate, score["success_rate"])
-    return score, best_rate
+    def request_stop(self, signum, frame) -> None:
+        del signum, frame
+        if self.interrupted:  # a second Ctrl-C: stop at once
+            raise KeyboardInterrupt
+        self.interrupted = True
+        log.warning("Ctrl-C: saving a checkpoint and stopping (press again to abort)")
+
+    def run(self) -> dict:
+        config, task, learner, c = self.config, self.task, self.learner, self.counters
+        self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
+            config.buffer_capacity, task.size, config.candidates, task.piece_size)
+        snapshot = self.logdir / "replay.npz"
+        if snapshot.exists():
+            restored = ray.get(self.buffer.restore.remote(str(snapshot)))
+            log.info("replay buffer restored: %d transitions", restored)
+        n_actors = _actor_count(config)
+        play_config = SelfPlayConfig(config.episodes_per_batch, config.mcts(), config.net())
+        # A dead actor process is restarted by Ray and its call retried (max_restarts, max_task_retries).
+        actors = [SelfPlayActor.options(runtime_env={"env_vars": ACTOR_ENV}, max_restarts=-1,
+                                        max_task_retries=-1).remote(
+            TaskSpec.of(task), play_config, config.seed * 1000 + i + 1 + c.episodes, self.buffer)
+            for i in range(n_actors)]
+        log.info("training %s K=%d with %d self-play actor(s) for %g min; logs in %s", task.shape_name,
+                 task.pieces, n_actors, config.minutes, self.logdir)
+        weights = [ray.put(jax.device_get(learner.params))]
+        inflight = {actor.run.remote(weights, c.version): (actor, c.version) for actor in actors}
+        pids: dict[int, int] = {}
+        start = time.monotonic()
+        base_seconds = c.seconds
+        deadline = start + 60 * config.minutes
+        next_validate = start + 60 * config.validate_minutes
+        next_checkpoint = start + 60 * config.checkpoint_minutes
+        next_report = start + 30
+        while time.monotonic() < deadline and not self.interrupted:
+            oldest = min(v for _, v in inflight.values())
+            can_learn = (c.transitions >= config.min_buffer
+                         and (learner.step + 1) * config.batch_size <= config.replay_ratio * c.transitions
+                         and c.version - oldest < config.max_policy_lag)
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0 if can_learn else 1.0)
+            for ref in ready:
+                actor, _ = inflight.pop(ref)
+                try:
+                    stats = ray.get(ref)
+                except RayActorError as exc:  # restarts exhausted or the node is gone: go on without it
+                    log.error("a self-play actor failed for good: %s", str(exc).splitlines()[0])
+                    continue
+                if pids.get(id(actor), stats.pid) != stats.pid:
+                    log.warning("self-play actor restarted (pid %d -> %d)", pids[id(actor)], stats.pid)
+                pids[id(actor)] = stats.pid
+                c.episodes += stats.episodes
+                c.successes += stats.successes
+                c.simulations += stats.simulations
+                self.lag = c.version - stats.version
+                c.transitions = ray.get(self.buffer.stats.remote())["added"]
+                inflight[actor.run.remote(weights, c.version)] = (actor, c.version)
+            if not inflight:
+                raise RLLockError("every self-play actor has failed; see the log above")
+            if can_learn:
+                sample = ray.get(self.buffer.sample.remote(config.batch_size, config.seed * 7919 + learner.step))
+                losses = learner.update(sample)
+                if learner.step % config.publish_every == 0:
+                    c.version += 1
+                    weights = [ray.put(jax.device_get(learner.params))]
+                if learner.step % 10 == 0:
+                    self.writer.add_scalar("losses/policy", losses["policy"], learner.step)
+                    self.writer.add_scalar("losses/value", losses["value"], learner.step)
+                    self.writer.add_scalar("losses/total", losses["policy"] + losses["value"], learner.step)
+            now = time.monotonic()
+            c.seconds = base_seconds + now - start
+            if ready or now >= next_report:
+                self._charts()
+            if now >= next_report:
+                log.info("step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | %.0f s",
+                         learner.step, c.episodes, 100 * c.successes / max(c.episodes, 1),
+                         "-" if self.last_score is None else f"{100 * self.last_score['success_rate']:.1f}%",
+                         self.lag, c.seconds)
+                next_report = now + 30
+            if now >= next_checkpoint:
+                self._checkpoint()
+                next_checkpoint = now + 60 * config.checkpoint_minutes
+            if now >= next_validate and not self.interrupted:
+                self._validate()
+                next_validate = time.monotonic() + 60 * config.validate_minutes
+        if self.interrupted:
+            self._checkpoint()
+        else:
+            for stats in ray.get(list(inflight)):  # batches under way finish before the final evaluation
+                c.episodes += stats.episodes
+                c.successes += stats.successes
+                c.simulations += stats.simulations
+            self._validate()
+            self._checkpoint()
+        elapsed = time.monotonic() - start
+        return {"steps": learner.step, "episodes": c.episodes, "selfplay_success_rate": c.successes / max(c.episodes, 1),
+                "validation": self.last_score, "best_success_rate": c.best_rate, "seconds": elapsed,
+                "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
+                "simulations_per_sec": c.simulations / max(c.seconds, 1e-9),
+                "actors": len(actors), "logdir": str(self.logdir), "interrupted": self.interrupted}
+
+    def _charts(self) -> None:
+        c, step, w = self.counters, self.learner.step, self.writer
+        w.add_scalar("charts/episodes_per_sec", c.episodes / max(c.seconds, 1e-9), step)
+        w.add_scalar("charts/simulations_per_sec", c.simulations / max(c.seconds, 1e-9), step)
+        w.add_scalar("charts/learner_steps_per_sec", step / max(c.seconds, 1e-9), step)
+        w.add_scalar("charts/policy_lag", self.lag, step)
+        w.add_scalar("charts/selfplay_success_rate", c.successes / max(c.episodes, 1), step)
+        w.add_scalar("buffer/size", min(c.transitions, self.config.buffer_capacity), step)
+
+    def _checkpoint(self) -> None:
+        step = self.learner.step
+        snapshot = self.logdir / "replay.npz"
+        ray.get(self.buffer.snapshot.remote(str(snapshot)))
+        ckpt.save(self.latest_mngr, step, self.learner.state(),
+                  checkpoint_meta(self.config, self.task, step, self.last_score, self.counters))
+
+    def _validate(self) -> None:
+        c, step = self.counters, self.learner.step
+        score, grid = self.validator(self.learner.params)
+        self.last_score = score
+        self.writer.add_scalar("validation/success_rate", score["success_rate"], step)
+        if score["time_per_valid_s"] is not None:
+            self.writer.add_scalar("validation/time_per_valid_s", score["time_per_valid_s"], step)
+        log.info("validation at step %d: %d/%d valid (%.1f%%)", step, score["valid"], score["episodes"],
+                 100 * score["success_rate"])
+        if score["success_rate"] > c.best_rate or self.best_mngr.latest_step() is None:
+            ckpt.save(self.best_mngr, step, self.learner.state(),
+                      checkpoint_meta(self.config, self.task, step, score, self.counters))
+            c.best_rate = max(c.best_rate, score["success_rate"])
+            if grid is not None:
+                self._best_assembly(grid, step)
+
+    def _best_assembly(self, grid: np.ndarray, step: int) -> None:
+        folder = self.logdir / "best_assembly"
+        png = folder / "assembly.png"
+        png.unlink(missing_ok=True)  # never leave the previous best's picture beside the new assembly
+        write_assembly(folder, grid, removal=self.task.removal, shape=self.task.shape_name,
+                       method={"name": "rl-lock validation", "step": step}, seed=self.config.seed,
+                       timings={})
+        if not png.exists():  # the CLI registers the picture writer; direct callers may not
+            draw_png(grid, png, self.task.removal)
+        self.writer.add_image("best/assembly", np.asarray(Image.open(png).convert("RGB")), step,
+                              dataformats="HWC")
