@@ -17,7 +17,7 @@ from rllock.network import NetConfig, PolicyValueNet
 # One XLA and one numba thread per actor: actors are one per core, so more threads only contend.
 ACTOR_ENV = {
     "JAX_PLATFORMS": "cpu",
-    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
     "NUMBA_NUM_THREADS": "1",
     "OMP_NUM_THREADS": "1",
 }
@@ -53,7 +53,6 @@ class PlayStats:
     episodes: int
     successes: int
     simulations: int
-    seconds: float
     version: int
     pid: int  # the actor's process, to notice restarts
 
@@ -85,12 +84,12 @@ class SelfPlayWorker:
         assert self.params is not None, "set_weights first"
         self.key, sub = jax.random.split(self.key)
         batch = self.config.episodes_per_batch
-        episodes, seconds = evaluate(self.searcher, self.params, self.task, sub, batch=batch,
+        episodes, _ = evaluate(self.searcher, self.params, self.task, sub, batch=batch,
                                      seed=self.seed * 1_000_003 + self.batches, canvas=self.config.net.canvas)
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(len(episodes), sum(e.success for e in episodes),
-                          decisions * self.config.mcts.simulations, seconds, self.version, os.getpid())
+                          decisions * self.config.mcts.simulations, self.version, os.getpid())
         return episodes, stats
 
 
@@ -107,5 +106,5 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(self.buffer.add_many.remote(episodes, version))  # waits: bounded in-flight data
+        ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
         return stats

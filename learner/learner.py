@@ -67,6 +67,12 @@ class Learner:
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
 
+    def next_seed(self) -> int:
+        """A seed for the next replay sample, from the learner's PRNG key (saved with checkpoints, so a
+        resumed run draws the same mini-batches it would have drawn)."""
+        self.key, sub = jax.random.split(self.key)
+        return int(jax.random.randint(sub, (), 0, np.iinfo(np.int32).max))
+
     def state(self) -> dict:
         """Everything a resume needs, as one pytree."""
         return {"params": self.params, "opt_state": self.opt_state, "step": np.asarray(self.step, dtype=np.int64),

@@ -13,18 +13,20 @@ from rllock.mcts import Episode
 class ReplayBuffer:
     """A ring buffer: the oldest transitions are overwritten once `capacity` is reached."""
 
-    def __init__(self, capacity: int, n_voxels: int, candidates: int, piece_size: int):
+    def __init__(self, capacity: int, n_voxels: int, candidates: int, piece_size: int,
+                 label_dtype: type = np.int8, voxel_dtype: type = np.int16):
+        """Dtypes as `rllock.env.compact_dtypes(task)` gives them: int8 labels, int16 voxel numbers
+        for K <= 127 and N <= 32767."""
         self.capacity = capacity
-        self.labels = np.zeros((capacity, n_voxels), np.int16)
+        self.labels = np.zeros((capacity, n_voxels), label_dtype)
         self.placed = np.zeros(capacity, np.int16)
-        self.chunks = np.zeros((capacity, candidates, piece_size), np.int16)
+        self.chunks = np.zeros((capacity, candidates, piece_size), voxel_dtype)
         self.num_valid = np.zeros(capacity, np.int16)
         self.pi = np.zeros((capacity, candidates), np.float32)
         self.z = np.zeros(capacity, np.float32)
         self.size = 0
         self.cursor = 0
         self.added = 0  # transitions ever added
-        self.last_version = -1  # weights version of the latest episodes
 
     def add(self, episode: Episode) -> None:
         for t in range(len(episode.z)):
@@ -39,10 +41,9 @@ class ReplayBuffer:
             self.size = min(self.size + 1, self.capacity)
             self.added += 1
 
-    def add_many(self, episodes: list[Episode], version: int) -> None:
+    def add_many(self, episodes: list[Episode]) -> None:
         for episode in episodes:
             self.add(episode)
-        self.last_version = version
 
     def sample(self, batch: int, seed: int) -> dict[str, np.ndarray]:
         idx = np.random.default_rng(seed).integers(0, self.size, size=batch)

@@ -62,6 +62,8 @@ def read_assembly(path: str | Path) -> tuple[np.ndarray, dict]:
         if data.get("format") != FORMAT:
             raise RLLockError(f"malformed assembly file {path}: not an {FORMAT} file")
         dims = tuple(int(d) for d in data["dimensions"])
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in data["labels"]):
+            raise RLLockError(f"malformed assembly file {path}: labels must be integers")
         labels = np.asarray(data["labels"], dtype=np.int64)
         if len(dims) != 3 or min(dims) < 1 or labels.size != dims[0] * dims[1] * dims[2]:
             raise RLLockError(f"malformed assembly file {path}: labels do not match dimensions {dims}")

@@ -48,6 +48,8 @@ def bench_checkers(*, shape: str = "cube6", pieces: int = 25, piece: int = 13, s
     """Raw chunks sampled and checked per second on one core: calls of `samples` chunks (one search
     node's worth, including its per-node preparation) cycling over seeded mid-episode states."""
     task = make_task(shape, pieces, removal)
+    if not 1 <= piece <= pieces - 1:
+        raise RLLockError(f"--piece must be between 1 and K-1 = {pieces - 1}, got {piece}")
     states = mid_episode_states(task, piece - 1, 8, seed)
     sample_accepted(task, states[0], seed=0, num_samples=16)  # compile before timing
     rates, accepted, total = [], 0, 0

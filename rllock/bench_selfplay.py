@@ -12,16 +12,17 @@ import ray
 
 from actors.selfplay import ACTOR_ENV, SelfPlayActor, SelfPlayConfig, TaskSpec
 from learner.replay import ReplayBuffer
-from rllock.env import make_task
+from rllock.env import compact_dtypes, make_task
 from rllock.mcts import MCTSConfig
 from rllock.network import NetConfig, check_fits, init_params
 
 log = logging.getLogger(__name__)
 
 
-def _measure(spec: TaskSpec, config: SelfPlayConfig, params_ref, actors: int, seconds: float, n_voxels: int,
-             piece_size: int) -> dict:
-    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(10_000, n_voxels, config.mcts.candidates, piece_size)
+def _measure(spec: TaskSpec, config: SelfPlayConfig, params_ref, actors: int, seconds: float) -> dict:
+    task = spec.make()
+    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(10_000, task.size, config.mcts.candidates,
+                                                         task.piece_size, *compact_dtypes(task))
     pool = [SelfPlayActor.options(runtime_env={"env_vars": ACTOR_ENV}).remote(spec, config, 100 + i, buffer)
             for i in range(actors)]
     weights = [params_ref]
@@ -37,9 +38,9 @@ def _measure(spec: TaskSpec, config: SelfPlayConfig, params_ref, actors: int, se
             episodes += stats.episodes
             simulations += stats.simulations
             inflight[actor.run.remote(weights, 0)] = actor
-    for stats in ray.get(list(inflight)):  # batches under way count: the window ends when they do
-        episodes += stats.episodes
-        simulations += stats.simulations
+    finished = ray.get(list(inflight))  # batches under way count: the window ends when they do
+    episodes += sum(s.episodes for s in finished)
+    simulations += sum(s.simulations for s in finished)
     elapsed = time.perf_counter() - start
     for a in pool:
         ray.kill(a)
@@ -61,7 +62,7 @@ def bench_selfplay(args: argparse.Namespace, counts: list[int]) -> list[dict]:
         params_ref = ray.put(jax.device_get(init_params(net, jax.random.PRNGKey(0))))
         rows = []
         for n in counts:
-            rows.append(_measure(TaskSpec.of(task), config, params_ref, n, args.seconds, task.size, task.piece_size))
+            rows.append(_measure(TaskSpec.of(task), config, params_ref, n, args.seconds))
             log.info("%d actor(s): %.3f episodes/s", n, rows[-1]["episodes_per_sec"])
         return rows
     finally:

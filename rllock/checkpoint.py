@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
@@ -71,11 +71,11 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None
     mngr.wait_until_finished()
 
 
-@dataclass(frozen=True)
-class Loaded:
-    path: Path  # the step directory
-    state: Any
-    meta: dict
+def saved_steps(folder: Path) -> list[int]:
+    """The steps saved in a manager's folder, ascending (none when it does not exist)."""
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit() and p.is_dir())
 
 
 def find_step_dir(path: Path) -> Path:
@@ -87,9 +87,9 @@ def find_step_dir(path: Path) -> Path:
     if (path / "meta").is_dir() and (path / "state").is_dir():
         return path
     for folder in (path / "best", path / "checkpoints", path):
-        steps = sorted((int(p.name), p) for p in folder.glob("*") if p.name.isdigit() and p.is_dir()) if folder.is_dir() else []
+        steps = saved_steps(folder)
         if steps:
-            return steps[-1][1]
+            return folder / str(steps[-1])
     raise RLLockError(f"{path} holds no RL-Lock checkpoint (expected best/, checkpoints/ or a step directory)")
 
 
@@ -103,10 +103,12 @@ def read_meta(step_dir: Path) -> dict:
     return meta
 
 
-def restore(step_dir: Path, abstract_state: Any) -> Any:
-    """The state saved in `step_dir`, laid out like `abstract_state` on this host's devices."""
+def restore_like(step_dir: Path, template: Any) -> Any:
+    """The state saved in `step_dir`, with the structure, shapes and dtypes of `template`, placed on this
+    host's default device (so a GPU-trained checkpoint loads on a CPU-only machine)."""
+    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
     try:
-        return ocp.StandardCheckpointer().restore((step_dir / "state").absolute(), abstract_state)
+        return ocp.StandardCheckpointer().restore((step_dir / "state").absolute(), abstract)
     except Exception as exc:  # orbax raises many kinds of errors for damaged files
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {first[:200]}") from None

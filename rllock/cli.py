@@ -40,11 +40,19 @@ def _add_task_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+def _fresh_out(path: str) -> Path:
+    """An output folder that holds no earlier results (they would be overwritten or mixed up)."""
+    out = Path(path)
+    if out.exists() and (not out.is_dir() or any(out.glob("assembly_*"))):
+        raise RLLockError(f"--out {out} already holds results; choose another folder")
+    return out
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from rllock.verify import verify_labels
 
-    labels, _ = read_assembly(args.file)
-    verdict = verify_labels(labels, args.removal)
+    labels, meta = read_assembly(args.file)
+    verdict = verify_labels(labels, args.removal or meta.get("removal") or "straight")
     if args.json:
         sys.stdout.write(json.dumps({"file": str(args.file), **verdict.to_json()}) + "\n")
     elif verdict.valid:
@@ -61,7 +69,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     config = SearchConfig()
-    out = Path(args.out)
+    out = _fresh_out(args.out)
     start = time.perf_counter()
     found = 0
     with tqdm(total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly",
@@ -169,8 +177,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _expected_task(args: argparse.Namespace, policy_canvas: int) -> dict | None:
-    """The identity of the task named on the command line, if one was named."""
+def _expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
+    """The identity of the task named on the command line (if one was named), to compare with the
+    checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own."""
     if args.shape is None and args.pieces is None:
         return None
     if args.shape is None or args.pieces is None:
@@ -178,23 +187,27 @@ def _expected_task(args: argparse.Namespace, policy_canvas: int) -> dict | None:
     from rllock.checkpoint import task_identity
     from rllock.env import make_task
 
-    return task_identity(make_task(args.shape, args.pieces, args.removal), policy_canvas)
+    task = make_task(args.shape, args.pieces, args.removal or saved["removal"], resolution=args.resolution)
+    return task_identity(task, saved["canvas"])
 
 
 def _load_for(args: argparse.Namespace):
     from rllock.checkpoint import find_step_dir, read_meta
     from rllock.generate import load_policy
 
+    if args.batch < 1:
+        raise RLLockError(f"--batch must be at least 1, got {args.batch}")
     meta = read_meta(find_step_dir(Path(args.checkpoint)))
-    return load_policy(args.checkpoint, _expected_task(args, meta["task"]["canvas"]))
+    return load_policy(args.checkpoint, _expected_task(args, meta["task"]))
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
     from rllock.generate import generate
 
+    out = _fresh_out(args.out)
     policy = _load_for(args)
     result = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed,
-                      out=Path(args.out))
+                      out=out)
     task = policy.task
     if result.valid == 0:
         sys.stdout.write(f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
@@ -242,6 +255,8 @@ def cmd_bench_selfplay(args: argparse.Namespace) -> int:
         counts = [int(c) for c in args.actors.split(",")]
     except ValueError:
         raise RLLockError(f"--actors takes a comma-separated list of counts, got {args.actors!r}") from None
+    if min(counts) < 1 or args.episodes_per_batch < 1 or args.simulations < 1:
+        raise RLLockError("--actors, --episodes-per-batch and --simulations must be at least 1")
     rows = bench_selfplay(args, counts)
     if args.json:
         sys.stdout.write(json.dumps({"rows": rows}) + "\n")
@@ -263,7 +278,9 @@ def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
     p.add_argument("--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default=None,
+                   help="optional: fail unless the checkpoint uses this removal mode")
+    p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -273,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("verify", help="check every stage of an assembly (.puz or assembly.json)")
     p.add_argument("file")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default=None,
+                   help="default: the mode an assembly.json names, else straight")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_verify)
 
@@ -349,6 +367,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except RLLockError as exc:
         sys.stderr.write(f"rllock: error: {exc}\n")
+        return 2
+    except OSError as exc:  # unwritable or missing output paths, full disks: the system's own words
+        sys.stderr.write(f"rllock: error: {exc.strerror or exc}: {exc.filename or ''}\n")
         return 2
     except KeyboardInterrupt:
         sys.stderr.write("rllock: interrupted\n")

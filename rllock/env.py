@@ -54,6 +54,13 @@ def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", n
     return Task(label, build_topology(grid), pieces, removal)
 
 
+def compact_dtypes(task: Task) -> tuple[type, type]:
+    """(label dtype, voxel-number dtype): the smallest integers that hold K and N, for stored data."""
+    label = np.int8 if task.pieces <= np.iinfo(np.int8).max else np.int16
+    voxel = np.int16 if task.size <= np.iinfo(np.int16).max else np.int32
+    return label, voxel
+
+
 def initial_state(task: Task) -> State:
     return State(np.zeros(task.size, dtype=np.int16), 0)
 

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 from tqdm import tqdm
 
 from learner.learner import Learner, LearnerConfig
@@ -50,9 +49,7 @@ def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
         ckpt.check_same_task(meta["task"], expect, step_dir)
     task = ckpt.task_from_identity(meta["task"])
     net, mcts, learner_config = _configs(meta)
-    template = Learner(task, net, learner_config, jax.random.PRNGKey(0)).state()
-    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
-    state = ckpt.restore(step_dir, abstract)
+    state = ckpt.restore_like(step_dir, Learner(task, net, learner_config, jax.random.PRNGKey(0)).state())
     return Policy(task, net, mcts, state["params"], str(step_dir), int(state["step"]))
 
 

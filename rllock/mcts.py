@@ -20,7 +20,7 @@ import mctx
 import numpy as np
 from jax.experimental import io_callback
 
-from rllock.env import State, Task, apply_chunk, distinct_subset, initial_state, is_solved, sample_accepted
+from rllock.env import State, Task, apply_chunk, candidates, compact_dtypes, initial_state, is_solved
 from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
 
 
@@ -54,9 +54,8 @@ class NodeStore:
         if is_solved(self.task, state):
             cands = np.zeros((0, self.task.piece_size), np.int32)
         else:
-            seed = int(self.rng.integers(1 << 31))
-            accepted = sample_accepted(self.task, state, seed=seed, num_samples=self.config.raw_samples)
-            cands = distinct_subset(accepted, self.config.candidates, seed)
+            cands = candidates(self.task, state, seed=int(self.rng.integers(1 << 31)),
+                               num_samples=self.config.raw_samples, max_candidates=self.config.candidates)
         self.states.append(state)
         self.cands.append(cands)
         return len(self.states) - 1
@@ -159,9 +158,9 @@ class Searcher:
 class Episode:
     """One self-play episode, compact: states as labels, candidates as voxel numbers."""
 
-    labels: np.ndarray  # int16[T, N]: the state before each decision
+    labels: np.ndarray  # int8/int16[T, N] (env.compact_dtypes): the state before each decision
     placed: np.ndarray  # int16[T]
-    chunks: np.ndarray  # int16[T, M, n]: candidate chunks (voxel numbers), padded with 0
+    chunks: np.ndarray  # int16/int32[T, M, n] (env.compact_dtypes): candidate voxel numbers, 0-padded
     num_valid: np.ndarray  # int16[T]: how many candidates are real
     pi: np.ndarray  # float32[T, M]: the search policy
     z: np.ndarray  # float32[T]: cumulative reward from each state to the end
@@ -188,9 +187,10 @@ def play(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, 
 
 def _episode(task: Task, store: NodeStore, steps: list[tuple[int, np.ndarray]], last: int, m: int) -> Episode:
     t, n = len(steps), task.piece_size
-    labels = np.zeros((t, task.size), np.int16)
+    label_dtype, voxel_dtype = compact_dtypes(task)
+    labels = np.zeros((t, task.size), label_dtype)
     placed = np.zeros(t, np.int16)
-    chunks = np.zeros((t, m, n), np.int16)
+    chunks = np.zeros((t, m, n), voxel_dtype)
     num_valid = np.zeros(t, np.int16)
     pi = np.zeros((t, m), np.float32)
     for s, (node, weights) in enumerate(steps):

@@ -9,11 +9,11 @@ are the only places that know this.
 from __future__ import annotations
 
 import re
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 
+from rllock import reference
 from rllock.errors import RLLockError
 
 BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring"
@@ -153,21 +153,8 @@ def crop(grid: np.ndarray) -> np.ndarray:
 
 
 def is_connected(grid: np.ndarray) -> bool:
-    """Whether the filled voxels of a boolean grid form one 6-connected solid (plain BFS)."""
-    cells = {tuple(int(c) for c in v) for v in np.argwhere(grid)}
-    if not cells:
-        return False
-    start = next(iter(cells))
-    seen = {start}
-    queue = deque([start])
-    while queue:
-        x, y, z = queue.popleft()
-        for dx, dy, dz in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)):
-            nb = (x + dx, y + dy, z + dz)
-            if nb in cells and nb not in seen:
-                seen.add(nb)
-                queue.append(nb)
-    return len(seen) == len(cells)
+    """Whether the filled voxels of a boolean grid form one 6-connected solid."""
+    return reference.is_connected(tuple(int(c) for c in v) for v in np.argwhere(grid))
 
 
 def validate_shape(grid: np.ndarray, name: str) -> np.ndarray:

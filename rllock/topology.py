@@ -37,9 +37,6 @@ class Topology:
         out[tuple(self.coords.T)] = labels
         return out
 
-    def from_grid(self, grid_values: np.ndarray) -> np.ndarray:
-        return np.asarray(grid_values)[tuple(self.coords.T)]
-
 
 def build_topology(grid: np.ndarray) -> Topology:
     grid = np.asarray(grid, dtype=bool)

@@ -39,7 +39,7 @@ from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
 from rllock import checkpoint as ckpt
 from rllock.assembly import write_assembly
-from rllock.env import Task, final_labels, make_task
+from rllock.env import Task, compact_dtypes, final_labels, make_task
 from rllock.errors import RLLockError
 from rllock.mcts import MCTSConfig, Searcher
 from rllock.network import NetConfig, PolicyValueNet, check_fits
@@ -98,6 +98,22 @@ class TrainConfig:
     def learner(self) -> LearnerConfig:
         return LearnerConfig(learning_rate=self.learning_rate, batch_size=self.batch_size)
 
+    def validate(self) -> None:
+        """Bad settings are one-line errors here, not tracebacks deep inside a run."""
+        positive = ("minutes", "canvas", "simulations", "max_considered", "raw_samples", "candidates",
+                    "episodes_per_batch", "learning_rate", "batch_size", "buffer_capacity", "replay_ratio",
+                    "publish_every", "max_policy_lag", "validate_minutes", "validation_episodes",
+                    "checkpoint_minutes")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if self.actors < 0 or self.min_buffer < 0 or not self.features or min(self.features) < 1:
+            raise RLLockError("--actors and --min-buffer must be >= 0 and --features positive")
+        if self.batch_size > self.buffer_capacity:
+            raise RLLockError("--batch-size cannot exceed --buffer-capacity")
+        if Path(self.logdir).exists() and not Path(self.logdir).is_dir():
+            raise RLLockError(f"--logdir {self.logdir} is a file")
+
     @staticmethod
     def from_json(doc: dict) -> "TrainConfig":
         known = {f.name for f in fields(TrainConfig)}
@@ -117,6 +133,12 @@ class Counters:
     seconds: float = 0.0
     best_rate: float = -1.0
     version: int = 0
+
+    def add(self, stats) -> None:
+        """Count one finished self-play batch (`actors.selfplay.PlayStats`)."""
+        self.episodes += stats.episodes
+        self.successes += stats.successes
+        self.simulations += stats.simulations
 
 
 def checkpoint_meta(config: TrainConfig, task: Task, step: int, validation: dict | None,
@@ -179,15 +201,14 @@ def load_resume(logdir: Path, minutes: float | None) -> TrainConfig:
 
 def _restore_latest(logdir: Path, learner: Learner) -> dict:
     """Load the newest readable checkpoint into `learner`; returns its metadata."""
-    steps = sorted((int(p.name) for p in (logdir / "checkpoints").glob("*") if p.name.isdigit()), reverse=True)
+    steps = ckpt.saved_steps(logdir / "checkpoints")[::-1]
     if not steps:
-        raise RLLockError(f"cannot resume {logdir}: it holds no checkpoint")
-    abstract = jax.tree_util.tree_map(ckpt.ocp.utils.to_shape_dtype_struct, learner.state())
+        raise RLLockError(f"cannot resume {logdir}: it holds no checkpoint (start it again without --resume)")
     for step in steps:
         step_dir = logdir / "checkpoints" / str(step)
         try:
             meta = ckpt.read_meta(step_dir)
-            learner.load_state(ckpt.restore(step_dir, abstract))
+            learner.load_state(ckpt.restore_like(step_dir, learner.state()))
         except RLLockError as exc:
             log.warning("%s; falling back to the checkpoint before it", exc)
             continue
@@ -195,7 +216,17 @@ def _restore_latest(logdir: Path, learner: Learner) -> dict:
     raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
 
 
+def _best_rate(logdir: Path) -> float:
+    """The validation score of the run's best checkpoint (-1 when there is none yet)."""
+    steps = ckpt.saved_steps(logdir / "best")
+    if not steps:
+        return -1.0
+    validation = ckpt.read_meta(logdir / "best" / str(steps[-1])).get("validation") or {}
+    return float(validation.get("success_rate", -1.0))
+
+
 def train(config: TrainConfig, *, resume: bool = False) -> dict:
+    config.validate()
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
     check_fits(task, config.net())
     logdir = Path(config.logdir)
@@ -206,9 +237,11 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
         meta = _restore_latest(logdir, learner)
         ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.canvas), logdir)
         counters = Counters(**meta.get("counters", {}))
+        # The best checkpoint may be newer than the latest readable one: its own score is the bar.
+        counters.best_rate = max(counters.best_rate, _best_rate(logdir))
         last_score = meta.get("validation")
         log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
-    elif (logdir / "checkpoints").exists():
+    elif ckpt.saved_steps(logdir / "checkpoints"):
         raise RLLockError(f"{logdir} already holds a training run; resume it with --resume {logdir} "
                           f"or choose another --logdir")
     logdir.mkdir(parents=True, exist_ok=True)
@@ -221,7 +254,8 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     validator = Validator(Searcher(PolicyValueNet(config.net()), config.mcts(), config.canvas, task.piece_size,
                                    config.validation_episodes), task, config)
     started_ray = _start_ray(config)
-    loop = _Loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logdir, counters, last_score)
+    loop = _Loop(config, task, learner, validator, writer, latest_mngr, best_mngr, logdir, counters, last_score,
+                 resume)
     previous = signal.signal(signal.SIGINT, loop.request_stop)
     try:
         return loop.run()
@@ -241,11 +275,12 @@ class _Loop:
     """The actor-learner loop's state: what a checkpoint must capture, in one place."""
 
     def __init__(self, config, task, learner, validator, writer, latest_mngr, best_mngr, logdir, counters,
-                 last_score):
+                 last_score, resume):
         self.config, self.task, self.learner, self.validator = config, task, learner, validator
         self.writer, self.latest_mngr, self.best_mngr, self.logdir = writer, latest_mngr, best_mngr, logdir
         self.counters, self.last_score = counters, last_score
         self.interrupted = False
+        self.resume = resume
         self.lag = 0
 
     def request_stop(self, signum, frame) -> None:
@@ -258,9 +293,9 @@ class _Loop:
     def run(self) -> dict:
         config, task, learner, c = self.config, self.task, self.learner, self.counters
         self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
-            config.buffer_capacity, task.size, config.candidates, task.piece_size)
+            config.buffer_capacity, task.size, config.candidates, task.piece_size, *compact_dtypes(task))
         snapshot = self.logdir / "replay.npz"
-        if snapshot.exists():
+        if self.resume and snapshot.exists():
             restored = ray.get(self.buffer.restore.remote(str(snapshot)))
             log.info("replay buffer restored: %d transitions", restored)
         n_actors = _actor_count(config)
@@ -297,16 +332,14 @@ class _Loop:
                 if pids.get(id(actor), stats.pid) != stats.pid:
                     log.warning("self-play actor restarted (pid %d -> %d)", pids[id(actor)], stats.pid)
                 pids[id(actor)] = stats.pid
-                c.episodes += stats.episodes
-                c.successes += stats.successes
-                c.simulations += stats.simulations
+                c.add(stats)
                 self.lag = c.version - stats.version
                 c.transitions = ray.get(self.buffer.stats.remote())["added"]
                 inflight[actor.run.remote(weights, c.version)] = (actor, c.version)
             if not inflight:
                 raise RLLockError("every self-play actor has failed; see the log above")
             if can_learn:
-                sample = ray.get(self.buffer.sample.remote(config.batch_size, config.seed * 7919 + learner.step))
+                sample = ray.get(self.buffer.sample.remote(config.batch_size, learner.next_seed()))
                 losses = learner.update(sample)
                 if learner.step % config.publish_every == 0:
                     c.version += 1
@@ -334,10 +367,11 @@ class _Loop:
         if self.interrupted:
             self._checkpoint()
         else:
-            for stats in ray.get(list(inflight)):  # batches under way finish before the final evaluation
-                c.episodes += stats.episodes
-                c.successes += stats.successes
-                c.simulations += stats.simulations
+            for ref in inflight:  # batches under way finish before the final evaluation
+                try:
+                    c.add(ray.get(ref))
+                except RayActorError:
+                    log.error("a self-play actor failed while finishing its last batch")
             self._validate()
             self._checkpoint()
         elapsed = time.monotonic() - start
@@ -373,9 +407,9 @@ class _Loop:
         log.info("validation at step %d: %d/%d valid (%.1f%%)", step, score["valid"], score["episodes"],
                  100 * score["success_rate"])
         if score["success_rate"] > c.best_rate or self.best_mngr.latest_step() is None:
+            c.best_rate = max(c.best_rate, score["success_rate"])
             ckpt.save(self.best_mngr, step, self.learner.state(),
                       checkpoint_meta(self.config, self.task, step, score, self.counters))
-            c.best_rate = max(c.best_rate, score["success_rate"])
             if grid is not None:
                 self._best_assembly(grid, step)
 

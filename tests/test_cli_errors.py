@@ -41,3 +41,31 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and needle in lines[0] and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [(["train", "--shape", "cube4", "--pieces", "6", "--publish-every", "0"], "--publish-every must be positive"),
+     (["train", "--shape", "cube4", "--pieces", "6", "--validation-episodes", "0"], "--validation-episodes"),
+     (["train", "--shape", "cube6", "--pieces", "6", "--canvas", "4"], "does not fit"),
+     (["train", "--pieces", "6"], "--shape and --pieces"),
+     (["train", "--resume", "{t}/nothing"], "cannot resume"),
+     (["generate", "--checkpoint", "{t}/nothing", "--out", "{t}/g"], "no such checkpoint"),
+     (["generate", "--checkpoint", "{t}", "--batch", "0", "--out", "{t}/g"], "--batch"),
+     (["bench", "selfplay", "--actors", "0"], "at least 1"),
+     (["bench", "checkers", "--piece", "30"], "between 1 and K-1")],
+)
+def test_bad_training_and_inference_input_is_one_line_and_exit_2(tmp_path, args, needle):
+    args = [a.format(t=tmp_path) for a in args]
+    if args[0] == "train" and "--resume" not in args:
+        args += ["--logdir", str(tmp_path / "run")]
+    code, _, err = run_cli(*args)
+    lines = err.strip().splitlines()
+    assert code == 2 and needle in lines[-1] and "Traceback" not in err, err
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_solve_refuses_an_output_folder_with_results(tmp_path):
+    (tmp_path / "assembly_001").mkdir()
+    code, _, err = run_cli("solve", "--shape", "cube3", "--pieces", "3", "--out", str(tmp_path))
+    assert code == 2 and "already holds results" in err

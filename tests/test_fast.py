@@ -45,6 +45,25 @@ def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
     assert compared >= 300 and 0 < accepted < compared
 
 
+@pytest.mark.parametrize("removal", ["straight", "path"])
+def test_early_exit_sampler_keeps_exactly_the_chunks_full_checks_accept(removal):
+    """sample_and_check (early exits) and sample_raw + check_chunks (every check) draw the same random
+    stream for the same seed, so they must keep exactly the same chunks, rejections included."""
+    task = make_task("cube5", 13, removal)
+    topo = task.topology
+    rng = np.random.default_rng(4)
+    kept_total = 0
+    for state in random_valid_states(task, rng, 2):
+        seed = int(rng.integers(1 << 30))
+        raw = fast.sample_raw(topo.nbr, topo.ray, state.labels, state.placed + 1, task.piece_size, 300, seed)
+        bits = fast.check_chunks(topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index,
+                                 state.labels, state.placed + 1, raw, removal == "path")
+        kept = sample_accepted(task, state, seed=seed, num_samples=300)
+        np.testing.assert_array_equal(kept, raw[bits == fast.ALL_CHECKS])
+        kept_total += len(kept)
+    assert kept_total > 0
+
+
 def test_accepted_chunks_are_exactly_those_the_reference_accepts():
     task = make_task("cube5", 13)
     rng = np.random.default_rng(3)

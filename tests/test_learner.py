@@ -32,8 +32,8 @@ def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
     task, eps = task_and_episodes
     total = sum(len(e.z) for e in eps)
     buf = ReplayBuffer(capacity=total - 3, n_voxels=task.size, candidates=8, piece_size=task.piece_size)
-    buf.add_many(eps, version=4)
-    assert len(buf) == total - 3 and buf.added == total and buf.last_version == 4
+    buf.add_many(eps)
+    assert len(buf) == total - 3 and buf.added == total
     flat = np.concatenate([e.labels for e in eps])  # every transition, oldest first
     # Transitions 0..2 were overwritten by the last three, which wrapped around to slots 0..2.
     assert buf.cursor == 3
@@ -46,7 +46,7 @@ def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
 def test_learner_fits_a_fixed_batch(task_and_episodes):
     task, eps = task_and_episodes
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
-    buf.add_many(eps, 0)
+    buf.add_many(eps)
     batch = buf.sample(32, seed=0)
     learner = Learner(task, NET, LearnerConfig(learning_rate=3e-3, batch_size=32), jax.random.PRNGKey(0))
     first = learner.update(batch)
@@ -69,7 +69,7 @@ def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episo
     task, eps = task_and_episodes
     learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5))
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
-    buf.add_many(eps, 0)
+    buf.add_many(eps)
     learner.update(buf.sample(16, seed=1))
     run = _save(tmp_path, task, learner)
     policy = load_policy(run)

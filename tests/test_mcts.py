@@ -22,10 +22,10 @@ def test_expansion_rewards_terminals_and_memo():
     np.testing.assert_allclose(reward, 1 / 4)
     assert planes.shape == (2, 4, 4, 4, 7) and valid[0].sum() == len(store.cands[kids[0]])
     # An action past the candidates, or any action below a terminal node, earns nothing and stays put.
-    bad = len(store.cands[root])
-    if bad < SMALL.candidates:
-        k, r, d, *_ = store.expand(np.array([root]), np.array([bad]))
-        assert (k[0], r[0], d[0]) == (root, 0.0, 0.0)
+    short = store.add(initial_state(task))
+    store.cands[short] = store.cands[short][:3]  # a node with fewer candidates than M_c
+    k, r, d, *_ = store.expand(np.array([short]), np.array([5]))
+    assert (k[0], r[0], d[0]) == (short, 0.0, 0.0)
     dead = store.add(initial_state(task))
     store.cands[dead] = store.cands[dead][:0]
     k, r, d, *_ = store.expand(np.array([dead]), np.array([0]))

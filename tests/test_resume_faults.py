@@ -1,0 +1,89 @@
+"""The trainer under faults, run as a user would: the `rllock train` command in a subprocess."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+TINY = ["--shape", "box:4x4x2", "--pieces", "3", "--canvas", "4", "--features", "4,8", "--simulations", "8",
+        "--raw-samples", "256", "--candidates", "8", "--max-considered", "4", "--episodes-per-batch", "4",
+        "--min-buffer", "8", "--batch-size", "16", "--publish-every", "5", "--validation-episodes", "8",
+        "--checkpoint-minutes", "0.05", "--validate-minutes", "0.3", "--actors", "1", "--learning-rate", "1e-3"]
+
+
+def _train(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rllock.cli", "train", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def _steps(logdir: Path) -> list[int]:
+    folder = logdir / "checkpoints"
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
+
+
+def _wait_for(predicate, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(1)
+
+
+def test_sigkill_then_resume_continues_and_falls_back_past_a_corrupted_checkpoint(tmp_path):
+    logdir = tmp_path / "run"
+    proc = _train(*TINY, "--minutes", "5", "--logdir", str(logdir))
+    try:
+        _wait_for(lambda: len([s for s in _steps(logdir) if s > 0]) >= 2, timeout=240)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and everything it started, mid-run
+        proc.wait()
+    killed_at = _steps(logdir)
+    assert (logdir / "replay.npz").exists()
+    # Damage the newest checkpoint's array data: the resume must fall back to the one before it.
+    newest = logdir / "checkpoints" / str(killed_at[-1])
+    for f in (newest / "state").rglob("*"):
+        if f.is_file() and f.parent.name == "d":
+            f.write_bytes(b"\0" * 9)
+    proc = _train("--resume", str(logdir), "--minutes", "0.6")
+    out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 0, out
+    assert "falling back" in out and f"resuming {logdir} at learner step {killed_at[-2]}" in out
+    after = _steps(logdir)
+    assert after[-1] > killed_at[-1] >= killed_at[-2] > 0  # the step counter goes on
+    events = EventAccumulator(str(logdir))
+    events.Reload()
+    steps = [e.step for e in events.Scalars("losses/policy")]
+    assert steps == sorted(steps) and steps[-1] > killed_at[-2]  # TensorBoard steps continue, no fork
+
+
+def test_a_killed_actor_is_restarted_and_training_reaches_its_end(tmp_path):
+    logdir = tmp_path / "run"
+    started = time.time()
+    proc = _train(*TINY, "--minutes", "1.5", "--logdir", str(logdir))
+
+    def actor_processes():
+        found = []
+        for p in psutil.process_iter(["cmdline", "create_time"]):
+            cmd = " ".join(p.info["cmdline"] or [])
+            if "SelfPlayActor" in cmd and p.info["create_time"] >= started:
+                found.append(p)
+        return found
+
+    try:
+        _wait_for(lambda: actor_processes() and _steps(logdir), timeout=240)
+        victim = actor_processes()[0]
+        victim.kill()
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, out
+    assert "train:" in out and "learner steps" in out
+    assert "self-play actor restarted" in out
