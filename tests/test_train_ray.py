@@ -16,7 +16,7 @@ from conftest import run_cli
 
 TINY = dict(shape="box:4x4x2", pieces=3, canvas=4, features=(4, 8), simulations=8, max_considered=4,
             raw_samples=256, candidates=8, episodes_per_batch=4, min_buffer=8, batch_size=16,
-            publish_every=5, validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1, actors=1)
+            publish_every=5, max_policy_lag=2, validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1, actors=1)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,15 @@ def test_training_writes_checkpoints_and_event_files(run):
     events = EventAccumulator(str(logdir))
     events.Reload()
     tags = set(events.Tags()["scalars"])
-    assert {"losses/policy", "losses/value", "validation/success_rate", "charts/episodes_per_sec"} <= tags
+    assert {"losses/policy", "losses/value", "charts/episodes_per_sec", "charts/simulations_per_sec",
+            "charts/policy_lag", "charts/learner_steps_per_sec", "buffer/size", "validation/success_rate",
+            "validation/time_per_valid_s"} <= tags
+    assert "best/assembly" in events.Tags()["images"] and events.Tags()["tensors"]  # picture; config text
+    for tag in ("charts/episodes_per_sec", "validation/success_rate"):
+        steps = [e.step for e in events.Scalars(tag)]
+        assert steps == sorted(steps) and steps[-1] == result["steps"]
+    assert max(e.value for e in events.Scalars("charts/policy_lag")) <= TINY["max_policy_lag"]
+    assert (logdir / "best_assembly" / "assembly.json").exists() and (logdir / "replay.npz").exists()
     losses = [e.value for e in events.Scalars("losses/policy")] + [e.value for e in events.Scalars("losses/value")]
     assert losses and all(math.isfinite(v) for v in losses)
 

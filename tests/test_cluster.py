@@ -1,0 +1,67 @@
+"""Training against a real Ray head started with `ray start --head` on loopback, through the cluster
+entry point, as `ray submit` and Ray Jobs run it."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from cluster.train_job import job_args
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--shape", "box:4x4x2", "--pieces", "3", "--canvas", "4", "--features", "4,8", "--simulations", "8",
+        "--raw-samples", "256", "--candidates", "8", "--max-considered", "4", "--episodes-per-batch", "4",
+        "--min-buffer", "8", "--batch-size", "16", "--validation-episodes", "8", "--validate-minutes", "0.3",
+        "--checkpoint-minutes", "0.2", "--actors", "1"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_job_args_join_the_cluster_unless_told_otherwise():
+    assert job_args(["--shape", "cube6"]) == ["train", "--shape", "cube6", "--address", "auto"]
+    assert job_args(["--address", "10.0.0.1:6379"]) == ["train", "--address", "10.0.0.1:6379"]
+
+
+def test_cluster_config_mounts_the_repository_and_installs_the_lock_file():
+    config = yaml.safe_load((ROOT / "cluster" / "cluster.yaml").read_text())
+    assert config["provider"]["type"] == "local" and config["file_mounts"]["~/rllock"] == "."
+    assert any("requirements.lock" in c for c in config["setup_commands"])
+
+
+def test_training_on_a_ray_head_started_on_loopback(tmp_path):
+    port = _free_port()
+    ray_bin = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
+    head = subprocess.Popen(
+        [ray_bin, "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
+         "--include-dashboard=false", "--disable-usage-stats", "--block", f"--temp-dir={tmp_path / 'ray'}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        time.sleep(8)
+        assert head.poll() is None, head.stdout.read()
+        logdir = tmp_path / "run"
+        job = subprocess.run(
+            [sys.executable, str(ROOT / "cluster" / "train_job.py"), *TINY, "--minutes", "0.5",
+             "--logdir", str(logdir), "--address", f"127.0.0.1:{port}"],
+            capture_output=True, text=True, timeout=400, env=os.environ | {"RAY_ADDRESS": ""})
+        assert job.returncode == 0, job.stdout + job.stderr
+        assert "train:" in job.stdout
+        assert any(p.name.isdigit() for p in (logdir / "checkpoints").iterdir())
+        assert any(p.name.isdigit() for p in (logdir / "best").iterdir())
+    finally:
+        os.killpg(head.pid, signal.SIGTERM)  # `ray start --block` stops the head's processes on exit
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
