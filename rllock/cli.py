@@ -6,7 +6,12 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
+
+# A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
+# set the variable yourself to change it. Must be set before JAX is imported.
+os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
 import time
 from dataclasses import asdict
 from pathlib import Path
