@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import ray
 
-from rllock.env import Task, make_task
+from rllock.env import Task, make_task, peak_rss_mb
 from rllock.mcts import Episode, MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
 
@@ -55,6 +55,7 @@ class PlayStats:
     simulations: int
     version: int
     pid: int  # the actor's process, to notice restarts
+    peak_rss_mb: float
 
 
 def evaluate(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, seed: int,
@@ -89,7 +90,7 @@ class SelfPlayWorker:
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(len(episodes), sum(e.success for e in episodes),
-                          decisions * self.config.mcts.simulations, self.version, os.getpid())
+                          decisions * self.config.mcts.simulations, self.version, os.getpid(), peak_rss_mb())
         return episodes, stats
 
 

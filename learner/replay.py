@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rllock.env import peak_rss_mb
 from rllock.mcts import Episode
 
 
@@ -74,5 +75,5 @@ class ReplayBuffer:
             self.cursor = int(data["cursor"]) % self.capacity
         return size
 
-    def stats(self) -> dict[str, int]:
-        return {"size": self.size, "added": self.added, "capacity": self.capacity}
+    def stats(self) -> dict[str, float]:
+        return {"size": self.size, "added": self.added, "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}

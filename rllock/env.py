@@ -7,6 +7,7 @@ leaves this open); later pieces start next to the previous piece.
 
 from __future__ import annotations
 
+import resource
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,11 @@ def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", n
         raise RLLockError(f"K = {pieces} is too many pieces")
     label = name if name is not None else (shape if isinstance(shape, str) else "array")
     return Task(label, build_topology(grid), pieces, removal)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far, in MiB (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def compact_dtypes(task: Task) -> tuple[type, type]:

@@ -39,7 +39,7 @@ from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
 from rllock import checkpoint as ckpt
 from rllock.assembly import write_assembly
-from rllock.env import Task, compact_dtypes, final_labels, make_task
+from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
 from rllock.errors import RLLockError
 from rllock.mcts import MCTSConfig, Searcher
 from rllock.network import NetConfig, PolicyValueNet, check_fits
@@ -282,6 +282,7 @@ class _Loop:
         self.interrupted = False
         self.resume = resume
         self.lag = 0
+        self.memory = {"driver": 0.0, "buffer": 0.0, "actor": 0.0}  # peak resident MiB per process kind
 
     def request_stop(self, signum, frame) -> None:
         del signum, frame
@@ -334,7 +335,10 @@ class _Loop:
                 pids[id(actor)] = stats.pid
                 c.add(stats)
                 self.lag = c.version - stats.version
-                c.transitions = ray.get(self.buffer.stats.remote())["added"]
+                buffer_stats = ray.get(self.buffer.stats.remote())
+                c.transitions = int(buffer_stats["added"])
+                self.memory["actor"] = max(self.memory["actor"], stats.peak_rss_mb)
+                self.memory["buffer"] = buffer_stats["peak_rss_mb"]
                 inflight[actor.run.remote(weights, c.version)] = (actor, c.version)
             if not inflight:
                 raise RLLockError("every self-play actor has failed; see the log above")
@@ -353,10 +357,11 @@ class _Loop:
             if ready or now >= next_report:
                 self._charts()
             if now >= next_report:
-                log.info("step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | %.0f s",
+                log.info("step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | "
+                         "peak MiB driver %.0f buffer %.0f actor %.0f | %.0f s",
                          learner.step, c.episodes, 100 * c.successes / max(c.episodes, 1),
                          "-" if self.last_score is None else f"{100 * self.last_score['success_rate']:.1f}%",
-                         self.lag, c.seconds)
+                         self.lag, self.memory["driver"], self.memory["buffer"], self.memory["actor"], c.seconds)
                 next_report = now + 30
             if now >= next_checkpoint:
                 self._checkpoint()
@@ -379,7 +384,8 @@ class _Loop:
                 "validation": self.last_score, "best_success_rate": c.best_rate, "seconds": elapsed,
                 "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
                 "simulations_per_sec": c.simulations / max(c.seconds, 1e-9),
-                "actors": len(actors), "logdir": str(self.logdir), "interrupted": self.interrupted}
+                "actors": len(actors), "logdir": str(self.logdir), "interrupted": self.interrupted,
+                "peak_rss_mb": dict(self.memory)}
 
     def _charts(self) -> None:
         c, step, w = self.counters, self.learner.step, self.writer
@@ -389,6 +395,9 @@ class _Loop:
         w.add_scalar("charts/policy_lag", self.lag, step)
         w.add_scalar("charts/selfplay_success_rate", c.successes / max(c.episodes, 1), step)
         w.add_scalar("buffer/size", min(c.transitions, self.config.buffer_capacity), step)
+        self.memory["driver"] = peak_rss_mb()
+        for kind, mb in self.memory.items():
+            w.add_scalar(f"memory/{kind}_peak_mb", mb, step)
 
     def _checkpoint(self) -> None:
         step = self.learner.step

@@ -49,6 +49,8 @@ def test_training_writes_checkpoints_and_event_files(run):
         steps = [e.step for e in events.Scalars(tag)]
         assert steps == sorted(steps) and steps[-1] == result["steps"]
     assert max(e.value for e in events.Scalars("charts/policy_lag")) <= TINY["max_policy_lag"]
+    for kind in ("driver", "buffer", "actor"):
+        assert events.Scalars(f"memory/{kind}_peak_mb")[-1].value > 50  # real processes, real megabytes
     assert (logdir / "best_assembly" / "assembly.json").exists() and (logdir / "replay.npz").exists()
     losses = [e.value for e in events.Scalars("losses/policy")] + [e.value for e in events.Scalars("losses/value")]
     assert losses and all(math.isfinite(v) for v in losses)
