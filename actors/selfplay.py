@@ -102,6 +102,9 @@ class SelfPlayActor:
         self.worker = SelfPlayWorker(spec, config, seed)
         self.buffer = buffer
 
+    def pid(self) -> int:
+        return os.getpid()
+
     def run(self, weights: list, version: int) -> PlayStats:
         """`weights` is [ObjectRef] so that Ray does not fetch it unless the version changed."""
         if version != self.worker.version:

@@ -308,9 +308,10 @@ class _Loop:
             for i in range(n_actors)]
         log.info("training %s K=%d with %d self-play actor(s) for %g min; logs in %s", task.shape_name,
                  task.pieces, n_actors, config.minutes, self.logdir)
+        # Each actor's process id, so that a restart (a new process behind the same handle) is noticed.
+        pids = {id(a): pid for a, pid in zip(actors, ray.get([a.pid.remote() for a in actors]))}
         weights = [ray.put(jax.device_get(learner.params))]
         inflight = {actor.run.remote(weights, c.version): (actor, c.version) for actor in actors}
-        pids: dict[int, int] = {}
         start = time.monotonic()
         base_seconds = c.seconds
         deadline = start + 60 * config.minutes
@@ -330,7 +331,7 @@ class _Loop:
                 except RayActorError as exc:  # restarts exhausted or the node is gone: go on without it
                     log.error("a self-play actor failed for good: %s", str(exc).splitlines()[0])
                     continue
-                if pids.get(id(actor), stats.pid) != stats.pid:
+                if pids[id(actor)] != stats.pid:
                     log.warning("self-play actor restarted (pid %d -> %d)", pids[id(actor)], stats.pid)
                 pids[id(actor)] = stats.pid
                 c.add(stats)
