@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import partial
 
 import jax
@@ -11,15 +10,8 @@ import numpy as np
 import optax
 
 from rllock.env import Task
+from rllock.config import LearnerConfig
 from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
-
-
-@dataclass(frozen=True)
-class LearnerConfig:
-    learning_rate: float = 5e-5
-    """Adam's learning rate (the paper's 5e-5)."""
-    batch_size: int = 64
-    """Transitions per update."""
 
 
 def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):

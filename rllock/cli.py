@@ -21,7 +21,6 @@ from tqdm import tqdm
 from rllock.assembly import read_assembly, register_writer, write_assembly
 from rllock.errors import RLLockError
 from rllock.reference import REMOVAL_MODES
-from rllock.render import write_picture
 from rllock.results_cli import add_commands as add_result_commands
 
 log = logging.getLogger("rllock")
@@ -155,7 +154,8 @@ def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] =
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from rllock.train import TrainConfig, load_resume, train
+    from rllock.config import TrainConfig
+    from rllock.train import load_resume, train
 
     if args.resume:
         default_minutes = next(f.default for f in dataclasses.fields(TrainConfig) if f.name == "minutes")
@@ -325,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_solve)
 
-    from rllock.train import TrainConfig
+    from rllock.config import TrainConfig
 
     p = sub.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
     _add_dataclass_args(p, TrainConfig)
@@ -365,8 +365,11 @@ def main(argv: list[str] | None = None) -> int:
                         force=True)  # ray/absl install root handlers on import; ours must win
     for noisy in ("numba", "jax", "absl", "matplotlib", "PIL", "orbax", "ray"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    register_writer(write_picture)  # every assembly the commands write gets its picture beside it
     try:
+        if args.command in ("solve", "generate", "train"):
+            from rllock.render import write_picture  # matplotlib: loaded only where pictures are drawn
+
+            register_writer(write_picture)  # every assembly these commands write gets its picture
         if getattr(args, "count", 1) < 1:
             raise RLLockError(f"--count must be at least 1, got {args.count}")
         return args.func(args)

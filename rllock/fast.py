@@ -225,7 +225,7 @@ def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queu
             c = coords[chunk[j], a]
             lo[a] = min(lo[a], c)
             hi[a] = max(hi[a], c)
-    sx, sy, sz = 2 * gx + 1, 2 * gy + 1, 2 * gz + 1
+    sy, sz = 2 * gy + 1, 2 * gz + 1
     queue[0] = (gx * sy + gy) * sz + gz  # offset (0, 0, 0)
     visited[queue[0]] = stamp
     head, tail = 0, 1

@@ -20,21 +20,9 @@ import mctx
 import numpy as np
 from jax.experimental import io_callback
 
+from rllock.config import MCTSConfig
 from rllock.env import State, Task, apply_chunk, candidates, compact_dtypes, initial_state, is_solved
 from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
-
-
-@dataclass(frozen=True)
-class MCTSConfig:
-    simulations: int = 256
-    """Simulations per decision."""
-    max_considered: int = 16
-    """Gumbel MuZero's max_num_considered_actions at the root."""
-    raw_samples: int = 1024
-    """M_s: raw chunks sampled when a node is expanded."""
-    candidates: int = 32
-    """M_c: accepted chunks kept as a node's candidate actions."""
-    gumbel_scale: float = 1.0
 
 
 class NodeStore:

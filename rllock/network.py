@@ -18,7 +18,6 @@ features through a small MLP and a sigmoid, since the target (the cumulative rew
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import flax.linen as nn
 import jax
@@ -26,19 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from rllock.env import Task
+from rllock.config import NetConfig
 from rllock.errors import RLLockError
 
 PLANES = 7
 MASKED_LOGIT = -1e9
-
-
-@dataclass(frozen=True)
-class NetConfig:
-    canvas: int = 8
-    """Side of the cubic canvas; smaller shapes are padded, larger ones are an error."""
-    features: tuple[int, ...] = (16, 32, 64)
-    """Channels per U-Net level; each level halves the resolution."""
-    value_hidden: int = 64
 
 
 def check_fits(task: Task, config: NetConfig) -> None:

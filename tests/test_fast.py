@@ -7,7 +7,7 @@ import pytest
 
 from rllock import fast
 from rllock import reference as ref
-from rllock.env import State, apply_chunk, candidates, initial_state, make_task, sample_accepted
+from rllock.env import apply_chunk, candidates, initial_state, make_task, sample_accepted
 
 from helpers import parts_after, random_valid_states, raw_chunks, voxel_labels
 

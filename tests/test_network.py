@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rllock.env import State, make_task
+from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.network import (MASKED_LOGIT, Conv3, NetConfig, PolicyValueNet, check_fits, chunk_logits, encode_batch,
                             init_params)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from rllock import reference as ref
 from rllock.env import make_task

@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import psutil
-import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 TINY = ["--shape", "box:4x4x2", "--pieces", "3", "--canvas", "4", "--features", "4,8", "--simulations", "8",
