@@ -153,7 +153,22 @@ def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] =
             p.add_argument(flag, default=default, type=type(default), help=f"default {default}")
 
 
+def _ray_on_loopback_unless(address: str | None) -> None:
+    """A Ray instance started here serves this machine only: bind it to loopback, not to the host's
+    outward address (Ray reads this setting when it is imported). A cluster run keeps Ray's default."""
+    if not address:
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
+def _resume_address(logdir: str) -> str | None:
+    try:
+        return json.loads((Path(logdir) / "config.json").read_text()).get("address")
+    except (OSError, ValueError, AttributeError):
+        return None  # load_resume reports an unreadable config properly
+
+
 def cmd_train(args: argparse.Namespace) -> int:
+    _ray_on_loopback_unless(_resume_address(args.resume) if args.resume else args.address)
     from rllock.config import TrainConfig
     from rllock.train import load_resume, train
 
@@ -254,6 +269,7 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_selfplay(args: argparse.Namespace) -> int:
+    _ray_on_loopback_unless(None)
     from rllock.bench_selfplay import bench_selfplay
 
     try:

@@ -1,9 +1,14 @@
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
+
+# Every Ray instance in the tests is one machine: keep its processes on loopback (Ray otherwise binds
+# this host's outward address). Read by Ray at import time, so set before any test imports it.
+os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 if not SHARED.is_dir():  # CI clones next to shared/, a developer's checkout may sit elsewhere

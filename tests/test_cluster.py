@@ -3,12 +3,15 @@ entry point, as `ray submit` and Ray Jobs run it."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import secrets
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -42,11 +45,15 @@ def test_cluster_config_mounts_the_repository_and_installs_the_lock_file():
 
 def test_training_on_a_ray_head_started_on_loopback(tmp_path):
     port = _free_port()
+    # Ray's socket paths must stay under 108 bytes: pytest's tmp_path is too deep for them.
+    ray_tmp = tempfile.mkdtemp(prefix="rl", dir="/tmp")
+    # Token authentication, as Ray enables it by default, with a token the head and the job share.
+    env = os.environ | {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_ADDRESS": ""}
     ray_bin = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
     head = subprocess.Popen(
         [ray_bin, "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
-         "--include-dashboard=false", "--disable-usage-stats", "--block", f"--temp-dir={tmp_path / 'ray'}"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+         "--include-dashboard=false", "--disable-usage-stats", "--block", f"--temp-dir={ray_tmp}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True, env=env)
     try:
         time.sleep(8)
         assert head.poll() is None, head.stdout.read()
@@ -54,14 +61,16 @@ def test_training_on_a_ray_head_started_on_loopback(tmp_path):
         job = subprocess.run(
             [sys.executable, str(ROOT / "cluster" / "train_job.py"), *TINY, "--minutes", "0.5",
              "--logdir", str(logdir), "--address", f"127.0.0.1:{port}"],
-            capture_output=True, text=True, timeout=400, env=os.environ | {"RAY_ADDRESS": ""})
+            capture_output=True, text=True, timeout=400, env=env)
         assert job.returncode == 0, job.stdout + job.stderr
         assert "train:" in job.stdout
         assert any(p.name.isdigit() for p in (logdir / "checkpoints").iterdir())
         assert any(p.name.isdigit() for p in (logdir / "best").iterdir())
     finally:
-        os.killpg(head.pid, signal.SIGTERM)  # `ray start --block` stops the head's processes on exit
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGTERM)  # `ray start --block` stops the head's processes on exit
         try:
             head.wait(timeout=60)
         except subprocess.TimeoutExpired:
             os.killpg(head.pid, signal.SIGKILL)
+        shutil.rmtree(ray_tmp, ignore_errors=True)

@@ -88,3 +88,19 @@ def test_a_killed_actor_is_restarted_and_training_reaches_its_end(tmp_path):
     assert proc.returncode == 0, out
     assert "train:" in out and "learner steps" in out
     assert "self-play actor restarted" in out
+
+
+def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
+    logdir = tmp_path / "run"
+    proc = _train(*TINY, "--minutes", "5", "--logdir", str(logdir))
+    try:
+        _wait_for(lambda: any(s > 0 for s in _steps(logdir)), timeout=240)
+        before = _steps(logdir)[-1]
+        os.kill(proc.pid, signal.SIGINT)  # the driver only, as a terminal's Ctrl-C reaches it
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, out
+    assert f"rllock train --resume {logdir}" in out and "Traceback" not in out
+    assert _steps(logdir)[-1] >= before and (logdir / "replay.npz").exists()
