@@ -297,6 +297,8 @@ class _Loop:
             if now >= next_validate and not self.interrupted:
                 self._validate()
                 next_validate = time.monotonic() + 60 * config.validate_minutes
+        c.seconds = base_seconds + time.monotonic() - start
+        self._charts()  # the curves end at the final step
         if self.interrupted:
             self._checkpoint()
         else:
