@@ -44,6 +44,10 @@ def _add_task_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+def _assemblies(count: int) -> str:
+    return "assembly" if count == 1 else "assemblies"
+
+
 def _fresh_out(path: str) -> Path:
     """An output folder that holds no earlier results (they would be overwritten or mixed up)."""
     out = Path(path)
@@ -93,7 +97,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         sys.stdout.write(f"solve: no valid assembly of {task.shape_name} K={task.pieces} within "
                          f"{args.time_limit:g} s\n")
         return 1
-    sys.stdout.write(f"solve: {found} valid assemblies of {task.shape_name} K={task.pieces} in {elapsed:.2f} s: "
+    sys.stdout.write(f"solve: {found} valid {_assemblies(found)} of {task.shape_name} K={task.pieces} in {elapsed:.2f} s: "
                      f"{elapsed / found:.3f} s per valid assembly -> {out}\n")
     return 0
 
@@ -233,7 +237,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         sys.stdout.write(f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
                          f"episodes ({result.seconds:.1f} s)\n")
         return 1
-    sys.stdout.write(f"generate: {result.valid} valid assemblies of {task.shape_name} K={task.pieces} from "
+    sys.stdout.write(f"generate: {result.valid} valid {_assemblies(result.valid)} of {task.shape_name} K={task.pieces} from "
                      f"{result.episodes} episodes in {result.seconds:.1f} s: {result.time_per_valid_s:.2f} s per "
                      f"valid assembly -> {args.out}\n")
     return 0
