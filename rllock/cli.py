@@ -8,10 +8,6 @@ import json
 import logging
 import os
 import sys
-
-# A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
-# set the variable yourself to change it. Must be set before JAX is imported.
-os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -24,6 +20,10 @@ from rllock.reference import REMOVAL_MODES
 from rllock.results_cli import add_commands as add_result_commands
 
 log = logging.getLogger("rllock")
+
+# A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
+# set the variable yourself to change it. JAX is imported later, by the commands that need it.
+os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
 
 
 def _positive_float(text: str) -> float:
