@@ -81,6 +81,11 @@ def apply_chunk(state: State, chunk: np.ndarray) -> State:
     return State(labels, state.placed + 1)
 
 
+def assembly_key(labels: np.ndarray) -> bytes:
+    """Identifies an assembly by its labels, to keep only distinct ones."""
+    return labels.astype(np.int16).tobytes()
+
+
 def final_labels(task: Task, state: State) -> np.ndarray:
     """Labels 1..K of a solved state: the remaining volume becomes piece K."""
     labels = state.labels.astype(np.int64)

@@ -9,13 +9,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import jax
-import numpy as np
 from tqdm import tqdm
 
 from learner.learner import Learner, LearnerConfig
 from rllock import checkpoint as ckpt
 from rllock.assembly import write_assembly
-from rllock.env import Task, final_labels
+from rllock.env import Task, assembly_key, final_labels
 from rllock.mcts import MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
 
@@ -97,7 +96,7 @@ def generate(policy: Policy, *, count: int, batch: int, time_limit: float, seed:
                 if not episode.success or len(seen) >= count:
                     continue
                 labels = final_labels(task, episode.final)
-                key_bytes = labels.astype(np.int16).tobytes()
+                key_bytes = assembly_key(labels)
                 if key_bytes in seen:
                     continue
                 seen.add(key_bytes)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rllock.env import State, Task, apply_chunk, distinct_subset, final_labels, initial_state, sample_accepted
+from rllock.env import State, Task, apply_chunk, assembly_key, distinct_subset, final_labels, initial_state, sample_accepted
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = S
         if state is None:
             continue
         labels = final_labels(task, state)
-        key = labels.astype(np.int16).tobytes()
+        key = assembly_key(labels)
         if key in seen:
             continue
         seen.add(key)
