@@ -12,6 +12,7 @@ import optax
 from rllock.env import Task
 from rllock.config import LearnerConfig
 from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
+from rllock.topology import symmetries
 
 
 def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):
@@ -31,6 +32,16 @@ def update_step(params, opt_state, batch, *, net: PolicyValueNet, optimizer: opt
     return optax.apply_updates(params, updates), opt_state, policy, value_loss
 
 
+def augment(sample: dict[str, np.ndarray], perms: np.ndarray, seed: int) -> dict[str, np.ndarray]:
+    """Each transition mapped through one of the voxel permutations `perms` [S, N], drawn uniformly:
+    a symmetric image of a state, with the same candidates (mapped), search policy and value."""
+    rows = perms[np.random.default_rng(seed).integers(0, len(perms), size=len(sample["labels"]))]
+    labels = np.empty_like(sample["labels"])
+    np.put_along_axis(labels, rows, sample["labels"], axis=1)  # labels'[p(v)] = labels[v]
+    chunks = np.take_along_axis(rows, sample["chunks"].reshape(len(rows), -1).astype(np.int64), axis=1)
+    return {**sample, "labels": labels, "chunks": chunks.reshape(sample["chunks"].shape).astype(sample["chunks"].dtype)}
+
+
 class Learner:
     def __init__(self, task: Task, net_config: NetConfig, config: LearnerConfig, key: jax.Array):
         """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is."""
@@ -44,9 +55,13 @@ class Learner:
         self.opt_state = self.optimizer.init(self.params)
         self.step = 0
         self._canvas_idx = canvas_index(task, net_config.canvas)
+        self._symmetries = symmetries(task.topology) if config.symmetries else None
 
-    def prepare(self, sample: dict[str, np.ndarray]) -> tuple:
-        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z)."""
+    def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
+        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z). With a
+        `seed` (and symmetries on), each transition is first mapped through a random symmetry."""
+        if seed is not None and self._symmetries is not None:
+            sample = augment(sample, self._symmetries, seed)
         m = sample["chunks"].shape[1]
         planes = encode_batch(self.task, sample["labels"], sample["placed"], self.net_config.canvas)
         chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
@@ -55,7 +70,8 @@ class Learner:
 
     def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
         self.params, self.opt_state, policy, value_loss = update_step(
-            self.params, self.opt_state, self.prepare(sample), net=self.net, optimizer=self.optimizer)
+            self.params, self.opt_state, self.prepare(sample, self.next_seed()), net=self.net,
+            optimizer=self.optimizer)
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
 

@@ -25,6 +25,7 @@ class ReplayBuffer:
         self.num_valid = np.zeros(capacity, np.int16)
         self.pi = np.zeros((capacity, candidates), np.float32)
         self.z = np.zeros(capacity, np.float32)
+        self.success = np.zeros(capacity, bool)  # the transition's episode succeeded
         self.size = 0
         self.cursor = 0
         self.added = 0  # transitions ever added
@@ -38,6 +39,7 @@ class ReplayBuffer:
             self.num_valid[i] = episode.num_valid[t]
             self.pi[i] = episode.pi[t]
             self.z[i] = episode.z[t]
+            self.success[i] = episode.success
             self.cursor = (i + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)
             self.added += 1
@@ -46,15 +48,22 @@ class ReplayBuffer:
         for episode in episodes:
             self.add(episode)
 
-    def sample(self, batch: int, seed: int) -> dict[str, np.ndarray]:
-        idx = np.random.default_rng(seed).integers(0, self.size, size=batch)
+    def sample(self, batch: int, seed: int, success_fraction: float = 0.0) -> dict[str, np.ndarray]:
+        """`batch` transitions drawn uniformly, except that round(success_fraction * batch) of them come
+        from successful episodes while the buffer holds any."""
+        rng = np.random.default_rng(seed)
+        idx = rng.integers(0, self.size, size=batch)
+        wins = np.flatnonzero(self.success[: self.size]) if success_fraction > 0 else ()
+        if len(wins):
+            k = int(round(success_fraction * batch))
+            idx[:k] = wins[rng.integers(0, len(wins), size=k)]
         return {"labels": self.labels[idx], "placed": self.placed[idx], "chunks": self.chunks[idx],
                 "num_valid": self.num_valid[idx], "pi": self.pi[idx], "z": self.z[idx]}
 
     def __len__(self) -> int:
         return self.size
 
-    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z")
+    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z", "success")
 
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""
@@ -70,10 +79,11 @@ class ReplayBuffer:
             if size > self.capacity:
                 raise ValueError(f"snapshot holds {size} transitions, capacity is {self.capacity}")
             for name in self._ARRAYS:
-                getattr(self, name)[:size] = data[name]
+                if name in data:  # snapshots from before a field existed leave it at its default
+                    getattr(self, name)[:size] = data[name]
             self.size, self.added = size, int(data["added"])
             self.cursor = int(data["cursor"]) % self.capacity
         return size
 
     def stats(self) -> dict[str, float]:
-        return {"size": self.size, "added": self.added, "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}
+        return {"size": self.size, "added": self.added, "successes": int(self.success[: self.size].sum()), "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}

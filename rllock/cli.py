@@ -149,6 +149,8 @@ def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] =
         elif isinstance(default, tuple):
             p.add_argument(flag, default=default, type=lambda t: tuple(int(v) for v in t.split(",")),
                            help=f"comma-separated (default {','.join(map(str, default))})")
+        elif isinstance(default, bool):
+            p.add_argument(flag, default=default, action=argparse.BooleanOptionalAction)
         elif f.name == "removal":
             p.add_argument(flag, default=default, choices=REMOVAL_MODES)
         elif default is None:

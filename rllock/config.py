@@ -37,6 +37,8 @@ class LearnerConfig:
     """Adam's learning rate (the paper's 5e-5)."""
     batch_size: int = 64
     """Transitions per update."""
+    symmetries: bool = True
+    """Map each sampled transition through a random symmetry of the shape (see topology.symmetries)."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,11 @@ class TrainConfig:
     """Transitions kept; the oldest are overwritten."""
     min_buffer: int = 256
     """Transitions in the buffer before the learner starts."""
+    success_fraction: float = 0.0
+    """Share of each mini-batch drawn from successful episodes' transitions, while there are any
+    (self-imitation, for tasks where successes are rare); 0 = uniform replay, as in the paper."""
+    symmetries: bool = True
+    """Augment mini-batches with the shape's symmetries (axis permutations and reflections)."""
     replay_ratio: float = 4.0
     """At most this many sampled transitions per transition produced by self-play."""
     publish_every: int = 25
@@ -87,7 +94,8 @@ class TrainConfig:
                           raw_samples=self.raw_samples, candidates=self.candidates)
 
     def learner(self) -> LearnerConfig:
-        return LearnerConfig(learning_rate=self.learning_rate, batch_size=self.batch_size)
+        return LearnerConfig(learning_rate=self.learning_rate, batch_size=self.batch_size,
+                             symmetries=self.symmetries)
 
     def validate(self) -> None:
         """Bad settings are one-line errors here, not tracebacks deep inside a run."""
@@ -100,6 +108,8 @@ class TrainConfig:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
         if self.actors < 0 or self.min_buffer < 0 or not self.features or min(self.features) < 1:
             raise RLLockError("--actors and --min-buffer must be >= 0 and --features positive")
+        if not 0.0 <= self.success_fraction <= 1.0:
+            raise RLLockError(f"--success-fraction must lie in [0, 1], got {self.success_fraction}")
         if self.batch_size > self.buffer_capacity:
             raise RLLockError("--batch-size cannot exceed --buffer-capacity")
         if Path(self.logdir).exists() and not Path(self.logdir).is_dir():

@@ -6,6 +6,7 @@ Voxels are numbered 0..N-1 in `np.argwhere` order of the `[x, y, z]` grid. Direc
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,3 +62,28 @@ def build_topology(grid: np.ndarray) -> Topology:
     line = np.stack([y * dims[2] + z, x * dims[2] + z, x * dims[1] + y], axis=1).astype(np.int32)
     n_lines = int(max(dims[1] * dims[2], dims[0] * dims[2], dims[0] * dims[1]))
     return Topology(grid, coords, index, nbr, ray, line, n_lines)
+
+
+def symmetries(topology: Topology) -> np.ndarray:
+    """int32[S, N]: voxel permutations of the shape's symmetries among the 48 axis permutations and
+    reflections of the grid (identity first); row s maps voxel v to voxel `out[s, v]`.
+
+    The checkers see only axis-aligned contacts and translations, and an axis permutation or reflection
+    maps those onto each other, so a symmetry maps valid states to valid states and accepted chunks to
+    accepted chunks: training data can be augmented with them (AlphaGo Zero's dihedral trick in 3D)."""
+    grid, coords = topology.grid, topology.coords
+    dims = np.array(grid.shape)
+    out = []
+    for axes in itertools.permutations(range(3)):
+        for flips in itertools.product((False, True), repeat=3):
+            new_dims = dims[list(axes)]
+            moved = coords[:, axes].copy()
+            for a, flip in enumerate(flips):
+                if flip:
+                    moved[:, a] = new_dims[a] - 1 - moved[:, a]
+            if tuple(new_dims) != grid.shape:
+                continue
+            target = topology.index[tuple(moved.T)]
+            if np.all(target >= 0):  # the shape lands on itself (a bijection, since N voxels land on N)
+                out.append(target)
+    return np.stack(out).astype(np.int32)

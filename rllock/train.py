@@ -209,6 +209,7 @@ class _Loop:
         self.interrupted = False
         self.resume = resume
         self.lag = 0
+        self.buffer_successes = 0  # transitions of successful episodes in the buffer
         self.memory = {"driver": 0.0, "buffer": 0.0, "actor": 0.0}  # peak resident MiB per process kind
 
     def request_stop(self, signum, frame) -> None:
@@ -265,13 +266,15 @@ class _Loop:
                 self.lag = c.version - stats.version
                 buffer_stats = ray.get(self.buffer.stats.remote())
                 c.transitions = int(buffer_stats["added"])
+                self.buffer_successes = int(buffer_stats["successes"])
                 self.memory["actor"] = max(self.memory["actor"], stats.peak_rss_mb)
                 self.memory["buffer"] = buffer_stats["peak_rss_mb"]
                 inflight[actor.run.remote(weights, c.version)] = (actor, c.version)
             if not inflight:
                 raise RLLockError("every self-play actor has failed; see the log above")
             if can_learn:
-                sample = ray.get(self.buffer.sample.remote(config.batch_size, learner.next_seed()))
+                sample = ray.get(self.buffer.sample.remote(config.batch_size, learner.next_seed(),
+                                                           config.success_fraction))
                 losses = learner.update(sample)
                 if learner.step % config.publish_every == 0:
                     c.version += 1
@@ -325,6 +328,7 @@ class _Loop:
         w.add_scalar("charts/policy_lag", self.lag, step)
         w.add_scalar("charts/selfplay_success_rate", c.successes / max(c.episodes, 1), step)
         w.add_scalar("buffer/size", min(c.transitions, self.config.buffer_capacity), step)
+        w.add_scalar("buffer/success_transitions", self.buffer_successes, step)
         self.memory["driver"] = peak_rss_mb()
         for kind, mb in self.memory.items():
             w.add_scalar(f"memory/{kind}_peak_mb", mb, step)

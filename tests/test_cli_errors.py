@@ -48,6 +48,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
     [(["train", "--shape", "cube4", "--pieces", "6", "--publish-every", "0"], "--publish-every must be positive"),
      (["train", "--shape", "cube4", "--pieces", "6", "--validation-episodes", "0"], "--validation-episodes"),
      (["train", "--shape", "cube6", "--pieces", "6", "--canvas", "4"], "does not fit"),
+     (["train", "--shape", "cube4", "--pieces", "6", "--success-fraction", "1.5"], "--success-fraction"),
      (["train", "--pieces", "6"], "--shape and --pieces"),
      (["train", "--resume", "{t}/nothing"], "cannot resume"),
      (["generate", "--checkpoint", "{t}/nothing", "--out", "{t}/g"], "no such checkpoint"),
@@ -69,3 +70,11 @@ def test_solve_refuses_an_output_folder_with_results(tmp_path):
     (tmp_path / "assembly_001").mkdir()
     code, _, err = run_cli("solve", "--shape", "cube3", "--pieces", "3", "--out", str(tmp_path))
     assert code == 2 and "already holds results" in err
+
+
+def test_train_switches_parse_both_ways():
+    from rllock.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6"]).symmetries is True
+    assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6", "--no-symmetries"]).symmetries is False
