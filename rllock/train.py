@@ -59,6 +59,7 @@ class Counters:
     transitions: int = 0
     seconds: float = 0.0
     best_rate: float = -1.0
+    best_return: float = -1.0  # mean return of the best validation, which breaks ties in success rate
     version: int = 0
 
     def add(self, stats) -> None:
@@ -92,7 +93,9 @@ class Validator:
                                      batch=self.config.validation_episodes, seed=self.config.seed + 7,
                                      canvas=self.config.canvas)
         wins = [e for e in episodes if e.success]
+        mean_return = float(np.mean([e.final.placed for e in episodes])) / self.task.pieces
         score = {"success_rate": len(wins) / len(episodes), "valid": len(wins), "episodes": len(episodes),
+                 "mean_return": mean_return,
                  "seconds": seconds, "time_per_valid_s": seconds / len(wins) if wins else None}
         grid = self.task.topology.to_grid(final_labels(self.task, wins[0].final)) if wins else None
         return score, grid
@@ -143,13 +146,19 @@ def _restore_latest(logdir: Path, learner: Learner) -> dict:
     raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
 
 
-def _best_rate(logdir: Path) -> float:
-    """The validation score of the run's best checkpoint (-1 when there is none yet)."""
+def validation_rank(score: dict | None) -> tuple[float, float]:
+    """How validations compare: success rate first, then the mean return (how far the episodes got),
+    so that a hard task where no validation succeeds yet still keeps its most promising checkpoint."""
+    score = score or {}
+    return float(score.get("success_rate", -1.0)), float(score.get("mean_return", -1.0))
+
+
+def _best_rank(logdir: Path) -> tuple[float, float]:
+    """The validation rank of the run's best checkpoint ((-1, -1) when there is none yet)."""
     steps = ckpt.saved_steps(logdir / "best")
     if not steps:
-        return -1.0
-    validation = ckpt.read_meta(logdir / "best" / str(steps[-1])).get("validation") or {}
-    return float(validation.get("success_rate", -1.0))
+        return -1.0, -1.0
+    return validation_rank(ckpt.read_meta(logdir / "best" / str(steps[-1])).get("validation"))
 
 
 def train(config: TrainConfig, *, resume: bool = False) -> dict:
@@ -165,7 +174,8 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
         ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.canvas), logdir)
         counters = Counters(**meta.get("counters", {}))
         # The best checkpoint may be newer than the latest readable one: its own score is the bar.
-        counters.best_rate = max(counters.best_rate, _best_rate(logdir))
+        counters.best_rate, counters.best_return = max((counters.best_rate, counters.best_return),
+                                                       _best_rank(logdir))
         last_score = meta.get("validation")
         log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
     elif ckpt.saved_steps(logdir / "checkpoints"):
@@ -349,8 +359,9 @@ class _Loop:
             self.writer.add_scalar("validation/time_per_valid_s", score["time_per_valid_s"], step)
         log.info("validation at step %d: %d/%d valid (%.1f%%)", step, score["valid"], score["episodes"],
                  100 * score["success_rate"])
-        if score["success_rate"] > c.best_rate or self.best_mngr.latest_step() is None:
-            c.best_rate = max(c.best_rate, score["success_rate"])
+        self.writer.add_scalar("validation/mean_return", score["mean_return"], step)
+        if validation_rank(score) > (c.best_rate, c.best_return) or self.best_mngr.latest_step() is None:
+            c.best_rate, c.best_return = max(validation_rank(score), (c.best_rate, c.best_return))
             ckpt.save(self.best_mngr, step, self.learner.state(),
                       checkpoint_meta(self.config, self.task, step, score, self.counters))
             if grid is not None:

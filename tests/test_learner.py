@@ -14,7 +14,7 @@ from rllock.errors import RLLockError
 from rllock.generate import load_policy
 from rllock.mcts import MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
-from rllock.train import TrainConfig, checkpoint_meta
+from rllock.train import TrainConfig, checkpoint_meta, validation_rank
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -96,3 +96,13 @@ def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and
     (broken / "meta" / "metadata").write_text("{trunc")
     with pytest.raises(RLLockError, match="corrupted"):
         load_policy(broken)
+
+
+def test_validations_rank_by_success_then_by_how_far_episodes_got():
+    none_valid_far = {"success_rate": 0.0, "mean_return": 0.7}
+    none_valid_near = {"success_rate": 0.0, "mean_return": 0.6}
+    one_valid = {"success_rate": 1 / 64, "mean_return": 0.5}
+    assert validation_rank(none_valid_far) > validation_rank(none_valid_near)
+    assert validation_rank(one_valid) > validation_rank(none_valid_far)
+    assert validation_rank(None) < validation_rank(none_valid_near)
+    assert validation_rank({"success_rate": 0.0}) < validation_rank(none_valid_near)  # older checkpoints

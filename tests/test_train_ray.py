@@ -42,7 +42,7 @@ def test_training_writes_checkpoints_and_event_files(run):
     events.Reload()
     tags = set(events.Tags()["scalars"])
     assert {"losses/policy", "losses/value", "charts/episodes_per_sec", "charts/simulations_per_sec",
-            "charts/policy_lag", "charts/learner_steps_per_sec", "buffer/size", "validation/success_rate",
+            "charts/policy_lag", "charts/learner_steps_per_sec", "buffer/size", "validation/success_rate", "validation/mean_return",
             "validation/time_per_valid_s"} <= tags
     assert "best/assembly" in events.Tags()["images"] and events.Tags()["tensors"]  # picture; config text
     for tag in ("charts/episodes_per_sec", "validation/success_rate"):
