@@ -8,6 +8,9 @@ run in lockstep, one batch row each, so every simulation is one network call for
 
 Rewards: 1/K per accepted chunk. A child with no candidates (a dead end) or with K-1 pieces placed
 (success) is terminal: discount 0 and value 0. Expanding below a terminal node gives reward 0.
+A non-terminal child's value is known to lie in [1/K, (K-1-i)/K] (it has an accepted candidate, and
+i pieces are placed), so the network's estimate is clipped to that range (`bounded_value`): even an
+untrained network then tells a live child from a dead end one level earlier.
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ class NodeStore:
         kids = np.empty(len(nodes), np.int32)
         reward = np.zeros(len(nodes), np.float32)
         discount = np.zeros(len(nodes), np.float32)
+        cap = np.zeros(len(nodes), np.float32)
         for row, (node, action) in enumerate(zip(nodes.tolist(), actions.tolist())):
             if self.terminal(node) or action >= len(self.cands[node]):
                 kids[row] = node
@@ -83,8 +87,16 @@ class NodeStore:
             kids[row] = kid
             reward[row] = 1.0 / self.task.pieces
             discount[row] = 0.0 if self.terminal(kid) else 1.0
+            cap[row] = (self.task.pieces - 1 - self.states[kid].placed) / self.task.pieces
         planes, chunks, valid = self.features(kids)
-        return kids, reward, discount, planes, chunks, valid
+        return kids, reward, discount, cap, planes, chunks, valid
+
+
+def bounded_value(value: jax.Array, reward: jax.Array, discount: jax.Array, cap: jax.Array) -> jax.Array:
+    """The network's value clipped to what is known of a child: 0 when terminal; otherwise at least
+    `reward` (1/K: it has an accepted candidate, so one more piece is certain) and at most `cap`
+    ((K-1-i)/K, the pieces still to place)."""
+    return jnp.where(discount > 0, jnp.clip(value, reward, cap), 0.0)
 
 
 class Searcher:
@@ -97,6 +109,7 @@ class Searcher:
         c, m, n = canvas, config.candidates, piece_size
         shapes = (
             jax.ShapeDtypeStruct((batch,), jnp.int32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch, c, c, c, PLANES), jnp.float32),
@@ -114,10 +127,10 @@ class Searcher:
 
         def recurrent_fn(params, rng_key, action, embedding):
             del rng_key
-            kids, reward, discount, planes, chunks, valid = io_callback(host_expand, shapes, embedding, action)
+            kids, reward, discount, cap, planes, chunks, valid = io_callback(host_expand, shapes, embedding, action)
             logits, value = evaluate(params, planes, chunks, valid)
             out = mctx.RecurrentFnOutput(reward=reward, discount=discount, prior_logits=logits,
-                                         value=jnp.where(discount > 0, value, 0.0))
+                                         value=bounded_value(value, reward, discount, cap))
             return out, kids
 
         def search(params, key, roots, planes, chunks, valid):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rllock.env import final_labels, initial_state, make_task
-from rllock.mcts import MCTSConfig, NodeStore, Searcher, play
+from rllock.mcts import MCTSConfig, NodeStore, Searcher, bounded_value, play
 from rllock.network import NetConfig, PolicyValueNet, init_params
 from rllock.verify import verify_labels
 
@@ -17,9 +17,10 @@ def test_expansion_rewards_terminals_and_memo():
     store = NodeStore(task, SMALL, 4, seed=0)
     root = store.add(initial_state(task))
     assert 0 < len(store.cands[root]) <= SMALL.candidates
-    kids, reward, discount, planes, chunks, valid = store.expand(np.array([root, root]), np.array([0, 0]))
+    kids, reward, discount, cap, planes, chunks, valid = store.expand(np.array([root, root]), np.array([0, 0]))
     assert kids[0] == kids[1] and store.child(root, 0) == kids[0]  # the same (node, action) -> one node
     np.testing.assert_allclose(reward, 1 / 4)
+    np.testing.assert_allclose(cap, 2 / 4)  # one piece placed, two still to place for K = 4
     assert planes.shape == (2, 4, 4, 4, 7) and valid[0].sum() == len(store.cands[kids[0]])
     # An action past the candidates, or any action below a terminal node, earns nothing and stays put.
     short = store.add(initial_state(task))
@@ -30,6 +31,14 @@ def test_expansion_rewards_terminals_and_memo():
     store.cands[dead] = store.cands[dead][:0]
     k, r, d, *_ = store.expand(np.array([dead]), np.array([0]))
     assert (k[0], r[0], d[0]) == (dead, 0.0, 0.0)
+
+
+def test_child_values_are_clipped_to_what_is_known():
+    value = np.array([0.0, 0.9, 0.3, 0.9], np.float32)
+    reward = np.array([0.25, 0.25, 0.25, 0.25], np.float32)
+    discount = np.array([1.0, 1.0, 1.0, 0.0], np.float32)  # the last child is terminal
+    cap = np.array([0.5, 0.5, 0.5, 0.0], np.float32)
+    np.testing.assert_allclose(np.asarray(bounded_value(value, reward, discount, cap)), [0.25, 0.5, 0.3, 0.0])
 
 
 @pytest.fixture(scope="module")
