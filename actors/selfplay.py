@@ -86,7 +86,7 @@ class SelfPlayWorker:
         self.key, sub = jax.random.split(self.key)
         batch = self.config.episodes_per_batch
         episodes, _ = evaluate(self.searcher, self.params, self.task, sub, batch=batch,
-                                     seed=self.seed * 1_000_003 + self.batches, canvas=self.config.net.canvas)
+                               seed=self.seed * 1_000_003 + self.batches, canvas=self.config.net.canvas)
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(len(episodes), sum(e.success for e in episodes),
