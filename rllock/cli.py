@@ -245,6 +245,17 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def learning_ratio(trained: float | None, untrained: float | None,
+                   untrained_seconds: float) -> tuple[float | None, float | None]:
+    """(trained / untrained time per valid assembly, an upper bound on it when only the untrained arm
+    found nothing: having found none in S seconds, it needs more than S per valid assembly)."""
+    if trained is None:
+        return None, None
+    if untrained is None:
+        return None, trained / untrained_seconds
+    return trained / untrained, None
+
+
 def cmd_bench_learning(args: argparse.Namespace) -> int:
     from rllock.generate import generate, untrained_like
 
@@ -256,9 +267,9 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
                       "success_rate": r.success_rate, "time_per_valid_s": r.time_per_valid_s}
         log.info("%s: %d valid of %d episodes in %.1f s", name, r.valid, r.episodes, r.seconds)
     t, u = rows["trained"]["time_per_valid_s"], rows["untrained"]["time_per_valid_s"]
-    ratio = None if t is None or u is None else t / u
+    ratio, bound = learning_ratio(t, u, rows["untrained"]["seconds"])
     doc = {"checkpoint": trained.source, "step": trained.step, "task": f"{trained.task.shape_name} K={trained.task.pieces}",
-           **rows, "ratio_trained_over_untrained": ratio}
+           **rows, "ratio_trained_over_untrained": ratio, "ratio_upper_bound": bound}
     if args.json:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
@@ -270,7 +281,8 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
             f"({rows['trained']['valid']}/{rows['trained']['episodes']})\n"
             f"  untrained: {fmt(u)} per valid, success rate {100 * rows['untrained']['success_rate']:.1f}% "
             f"({rows['untrained']['valid']}/{rows['untrained']['episodes']})\n"
-            f"  ratio trained/untrained: {'-' if ratio is None else f'{ratio:.3f}'}\n")
+            f"  ratio trained/untrained: {'-' if ratio is None else f'{ratio:.3f}'}"
+            f"{'' if bound is None else f' (below {bound:.3f}: the untrained arm found none)'}\n")
     return 0
 
 

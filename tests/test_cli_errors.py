@@ -78,3 +78,12 @@ def test_train_switches_parse_both_ways():
     parser = build_parser()
     assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6"]).symmetries is True
     assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6", "--no-symmetries"]).symmetries is False
+
+
+def test_learning_ratio_and_its_bound_when_the_baseline_finds_nothing():
+    from rllock.cli import learning_ratio
+
+    assert learning_ratio(10.0, 40.0, 200.0) == (0.25, None)
+    assert learning_ratio(30.0, None, 300.0) == (None, 0.1)  # untrained: none in 300 s
+    assert learning_ratio(None, 40.0, 200.0) == (None, None)
+    assert learning_ratio(None, None, 200.0) == (None, None)
