@@ -24,7 +24,9 @@ def run(tmp_path_factory):
     logdir = tmp_path_factory.mktemp("run")
     ray.init(num_cpus=2, include_dashboard=False)
     try:
-        result = train(TrainConfig(minutes=1.0, logdir=str(logdir), learning_rate=1e-3, **TINY))
+        # 1.5 minutes: the first self-play batch compiles the search, which takes most of a minute on a
+        # loaded 2-core machine.
+        result = train(TrainConfig(minutes=1.5, logdir=str(logdir), learning_rate=1e-3, **TINY))
     finally:
         ray.shutdown()
     return logdir, result
