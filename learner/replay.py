@@ -86,4 +86,5 @@ class ReplayBuffer:
         return size
 
     def stats(self) -> dict[str, float]:
-        return {"size": self.size, "added": self.added, "successes": int(self.success[: self.size].sum()), "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}
+        return {"size": self.size, "added": self.added, "successes": int(self.success[: self.size].sum()),
+                "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}

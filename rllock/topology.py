@@ -77,12 +77,12 @@ def symmetries(topology: Topology) -> np.ndarray:
     for axes in itertools.permutations(range(3)):
         for flips in itertools.product((False, True), repeat=3):
             new_dims = dims[list(axes)]
+            if tuple(new_dims) != grid.shape:
+                continue
             moved = coords[:, axes].copy()
             for a, flip in enumerate(flips):
                 if flip:
                     moved[:, a] = new_dims[a] - 1 - moved[:, a]
-            if tuple(new_dims) != grid.shape:
-                continue
             target = topology.index[tuple(moved.T)]
             if np.all(target >= 0):  # the shape lands on itself (a bijection, since N voxels land on N)
                 out.append(target)
