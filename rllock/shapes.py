@@ -1,6 +1,10 @@
 """Voxel shapes: built-in names, the DESIA `.puz`, High-Level `.vol` and `.npy` file formats, and
 closed `.stl`/`.obj` meshes (voxelized by `rllock.meshes`).
 
+Built-in names are generated shapes (`cubeN`, `box:WxHxD`, `ring`) and the published shapes vendored in
+`rllock/data/shapes/` (`sofa`, `desia-bunny`, ...; sources and licences in `rllock/data/README.md`), so a
+name works from any directory. `data_path` finds any vendored file.
+
 Every grid in RL-Lock is a numpy array indexed `[x, y, z]`. The text formats store x fastest, then y,
 then z, which is numpy's C order of an array indexed `[z, y, x]`; `from_xfastest` and `to_xfastest`
 are the only places that know this.
@@ -16,7 +20,28 @@ import numpy as np
 from rllock import reference
 from rllock.errors import RLLockError
 
-BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring"
+# Published shapes shipped with the package: name -> file under rllock/data/shapes/.
+VENDORED_SHAPES = {
+    "bunny": "highlevel_Bunny_11x10x8.vol",
+    "cubeweird": "highlevel_CubeWeird_6x6x6.vol",
+    "mario": "highlevel_Mario_12x16x4.vol",
+    "shelf": "highlevel_Shelf_9x9x4.vol",
+    "sofa": "highlevel_Sofa_7x8x6.vol",
+    "spider": "highlevel_Spider_12x13x6.vol",
+    "desia-cube4": "desia_Cube_4x4x4_origin.puz",
+    "desia-cube5": "desia_Cube_5x5x5_origin.puz",
+    "desia-hollow-cube4": "desia_Cube_hollow_4x4x4_origin.puz",
+    "desia-bunny": "desia_bunny_origin.puz",
+    "desia-dog": "desia_dog_origin.puz",
+}
+BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring, " + ", ".join(VENDORED_SHAPES)
+
+_DATA = Path(__file__).resolve().parent / "data"
+
+
+def data_path(relative: str | Path) -> Path:
+    """The path of a file (or folder) vendored under `rllock/data/`, e.g. "published/Cube_4x4x4_K9.puz"."""
+    return _DATA / relative
 
 
 def cube(size: int) -> np.ndarray:
@@ -44,6 +69,9 @@ def builtin_shape(name: str) -> np.ndarray | None:
         return np.ones(dims, dtype=bool)
     if name == "ring":
         return ring()
+    if name in VENDORED_SHAPES:
+        path = data_path(Path("shapes") / VENDORED_SHAPES[name])
+        return read_vol(path) if path.suffix == ".vol" else read_puz_labels(path) != 0
     return None
 
 

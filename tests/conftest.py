@@ -10,16 +10,13 @@ import pytest
 # this host's outward address). Read by Ray at import time, so set before any test imports it.
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-if not SHARED.is_dir():  # CI clones next to shared/, a developer's checkout may sit elsewhere
-    SHARED = Path("/work/shared")
-
 
 @pytest.fixture(scope="session")
-def shared() -> Path:
-    if not SHARED.is_dir():
-        pytest.skip("shared/ data folder not found")
-    return SHARED
+def data() -> Path:
+    """The data vendored in the package (`rllock/data/`: published/ assemblies, shapes/)."""
+    from rllock.shapes import data_path
+
+    return data_path("")
 
 
 def run_cli(*args: str, timeout: float = 300):

@@ -147,8 +147,8 @@ def test_xmpuzzle_holds_shapes_assembly_and_disassembly(tmp_path, saved, labels)
     _check_xmpuzzle(tmp_path / "bt" / "assembly.xmpuzzle", labels)
 
 
-def test_xmpuzzle_of_a_multi_move_path_assembly(tmp_path, shared):
-    source = shared / "data" / "published" / "Cube_4x4x4_K9.puz"
+def test_xmpuzzle_of_a_multi_move_path_assembly(tmp_path, data):
+    source = data / "published" / "Cube_4x4x4_K9.puz"
     _run("export", str(source), "--format", "xmpuzzle", "--out", str(tmp_path))
     labels = read_puz_labels(source)
     _check_xmpuzzle(tmp_path / "Cube_4x4x4_K9.xmpuzzle", labels)

@@ -16,10 +16,10 @@ def _parts(labels: np.ndarray, upto: int) -> list[ref.Part]:
     return [*parts, frozenset(map(tuple, np.argwhere(labels > upto).tolist()))]
 
 
-def test_scc_interlocking_agrees_with_subset_enumeration_on_published_stages(shared):
+def test_scc_interlocking_agrees_with_subset_enumeration_on_published_stages(data):
     checked = 0
     for name in ("Cube_4x4x4_K9.puz", "Cube_4x4x4_K9_01.puz", "Cube_Hollow_4x4x4_K7.puz"):
-        labels = read_puz_labels(shared / "data/published" / name)
+        labels = read_puz_labels(data / "published" / name)
         for i in range(2, int(labels.max())):
             parts = _parts(labels, i)
             assert ref.is_interlocking(parts) == ref.is_interlocking_bruteforce(parts)

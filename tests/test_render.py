@@ -67,8 +67,8 @@ def test_assembly_writer_hook_puts_a_picture_next_to_the_assembly(tmp_path, labe
     assert Image.open(tmp_path / "out" / "assembly.png").format == "PNG"
 
 
-def test_steps_follow_the_verified_moves(shared):
-    labels = read_puz_labels(shared / "data" / "published" / "Cube_4x4x4_K9.puz")
+def test_steps_follow_the_verified_moves(data):
+    labels = read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz")
     verdict = verify_labels(labels, "path")
     steps = disassembly_steps(verdict)
     assert len(steps) == 2 + sum(len(e["moves"]) for e in verdict.disassembly)
@@ -122,16 +122,16 @@ def test_html_renders_in_headless_chromium(tmp_path, labels):
     assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 50
 
 
-def test_show_command_writes_all_three(tmp_path, shared):
-    source = shared / "data" / "published" / "cartoon_dog.puz"
+def test_show_command_writes_all_three(tmp_path, data):
+    source = data / "published" / "cartoon_dog.puz"
     out = {kind: tmp_path / f"dog.{kind}" for kind in ("png", "gif", "html")}
     assert _run("show", str(source), *[f"--{kind}={path}" for kind, path in out.items()]) == 0
     assert all(path.stat().st_size > 0 for path in out.values())
 
 
-def test_show_uses_the_removal_mode_that_makes_a_puz_valid(tmp_path, shared):
+def test_show_uses_the_removal_mode_that_makes_a_puz_valid(tmp_path, data):
     # Valid only under path removal: the GIF follows the multi-move disassembly.
-    source = shared / "data" / "published" / "Cube_4x4x4_K9.puz"
+    source = data / "published" / "Cube_4x4x4_K9.puz"
     assert _run("show", str(source), "--gif", str(tmp_path / "a.gif")) == 0
     verdict = verify_labels(read_puz_labels(source), "path")
     assert Image.open(tmp_path / "a.gif").n_frames == len(disassembly_steps(verdict, frames_per_move=3))

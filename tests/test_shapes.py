@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rllock.errors import RLLockError
-from rllock.shapes import load_shape, piece_size, read_puz_labels, write_puz
+from rllock.shapes import VENDORED_SHAPES, data_path, load_shape, piece_size, read_puz_labels, write_puz
 
 
 def test_builtins_have_the_documented_sizes():
@@ -22,13 +22,36 @@ def test_builtins_have_the_documented_sizes():
      ("desia_Cube_hollow_4x4x4_origin.puz", 56), ("desia_bunny_origin.puz", 966),
      ("desia_dog_origin.puz", 581), ("highlevel_Sofa_7x8x6.vol", 168)],
 )
-def test_published_shapes_load_with_their_voxel_counts(shared, name, count):
-    assert load_shape(str(shared / "data/shapes" / name)).sum() == count
+def test_published_shapes_load_with_their_voxel_counts(data, name, count):
+    assert load_shape(str(data / "shapes" / name)).sum() == count
 
 
-def test_vol_orientation_is_x_fastest(shared):
+@pytest.mark.parametrize(
+    "name,file",
+    [("bunny", "highlevel_Bunny_11x10x8.vol"), ("cubeweird", "highlevel_CubeWeird_6x6x6.vol"),
+     ("mario", "highlevel_Mario_12x16x4.vol"), ("shelf", "highlevel_Shelf_9x9x4.vol"),
+     ("sofa", "highlevel_Sofa_7x8x6.vol"), ("spider", "highlevel_Spider_12x13x6.vol"),
+     ("desia-cube4", "desia_Cube_4x4x4_origin.puz"), ("desia-cube5", "desia_Cube_5x5x5_origin.puz"),
+     ("desia-hollow-cube4", "desia_Cube_hollow_4x4x4_origin.puz"), ("desia-bunny", "desia_bunny_origin.puz"),
+     ("desia-dog", "desia_dog_origin.puz")],
+)
+def test_vendored_shapes_load_by_name_from_any_directory(data, name, file, tmp_path, monkeypatch):
+    from_file = load_shape(str(data / "shapes" / file))
+    # A user's working directory holds no data: the name must resolve inside the installed package.
+    monkeypatch.chdir(tmp_path)
+    by_name = load_shape(name)
+    assert by_name.sum() == from_file.sum() and np.array_equal(by_name, from_file)
+
+
+def test_every_vendored_shape_has_a_name_and_a_file(data):
+    files = {p.name for p in (data / "shapes").iterdir() if p.suffix in (".puz", ".vol")}
+    assert set(VENDORED_SHAPES.values()) == files
+    assert data == data_path("") and (data / "published" / "Cube_4x4x4_K9.puz").is_file()
+
+
+def test_vol_orientation_is_x_fastest(data):
     # The sofa file's first z-slice, first y-row is "1 1 0 0 0 1 1": x varies along the line.
-    grid = load_shape(str(shared / "data/shapes/highlevel_Sofa_7x8x6.vol"))
+    grid = load_shape(str(data / "shapes" / "highlevel_Sofa_7x8x6.vol"))
     assert grid.shape == (7, 8, 6)
     assert list(grid[:, 0, 0].astype(int)) == [1, 1, 0, 0, 0, 1, 1]
 
@@ -62,8 +85,10 @@ def test_bad_shape_files_are_clear_errors(tmp_path, content, message):
 
 
 def test_unknown_names_and_missing_files():
-    with pytest.raises(RLLockError, match="unknown shape"):
+    with pytest.raises(RLLockError, match="unknown shape") as err:
         load_shape("dodecahedron")
+    # One line that lists the names a user could have meant, the vendored ones included.
+    assert "\n" not in str(err.value) and "sofa" in str(err.value) and "desia-dog" in str(err.value)
     with pytest.raises(RLLockError, match="no such file"):
         load_shape("/nonexistent/shape.vol")
 

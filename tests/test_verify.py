@@ -39,15 +39,15 @@ def replay_disassembly(labels: np.ndarray, verdict) -> None:
 
 
 @pytest.mark.parametrize("name", PUBLISHED)
-def test_published_assemblies_are_valid_under_path_removal(shared, name):
-    labels = read_puz_labels(shared / "data/published" / name)
+def test_published_assemblies_are_valid_under_path_removal(data, name):
+    labels = read_puz_labels(data / "published" / name)
     verdict = verify_labels(labels, "path")
     assert verdict.valid and verdict.failed_stage is None
     replay_disassembly(labels, verdict)
 
 
-def test_published_cube_fails_straight_removal_at_stage_3(shared):
-    verdict = verify_labels(read_puz_labels(shared / "data/published/Cube_4x4x4_K9.puz"), "straight")
+def test_published_cube_fails_straight_removal_at_stage_3(data):
+    verdict = verify_labels(read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz"), "straight")
     assert (verdict.valid, verdict.failed_stage, verdict.failed_check) == (False, 3, "removable")
 
 
@@ -74,8 +74,8 @@ def test_solver_assemblies_replay_their_disassembly(removal):
             assert all(len(e["moves"]) == 1 for e in verdict.disassembly)
 
 
-def test_verify_command_exit_codes_and_json(shared, tmp_path):
-    cube = str(shared / "data/published/Cube_4x4x4_K9.puz")
+def test_verify_command_exit_codes_and_json(data, tmp_path):
+    cube = str(data / "published" / "Cube_4x4x4_K9.puz")
     code, out, _ = run_cli("verify", cube, "--removal", "path", "--json")
     doc = json.loads(out)
     assert code == 0 and doc["valid"] and doc["removal"] == "path" and doc["failed_stage"] is None
@@ -88,10 +88,10 @@ def test_verify_command_exit_codes_and_json(shared, tmp_path):
     assert code == 2 and "1..K" in err and "Traceback" not in err
 
 
-def test_verify_uses_the_removal_mode_an_assembly_json_names(shared, tmp_path):
+def test_verify_uses_the_removal_mode_an_assembly_json_names(data, tmp_path):
     from rllock.assembly import write_assembly
 
-    labels = read_puz_labels(shared / "data/published/Cube_4x4x4_K9.puz")  # valid only under path
+    labels = read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz")  # valid only under path
     write_assembly(tmp_path, labels, removal="path", shape="cube4", method={"name": "published"}, seed=0,
                    timings={})
     assert run_cli("verify", str(tmp_path / "assembly.json"))[0] == 0
