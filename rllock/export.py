@@ -4,7 +4,9 @@ Meshes (see `rllock.meshes`): one watertight file per piece, `piece_01.stl` ... 
 `.obj`), in millimetres, each in its assembled position (voxel (x, y, z) spans [x, x+1] * voxel size
 along x, and so on), so loading them all shows the assembled shape. With a clearance gap every piece
 is shrunk by gap/2 on each face that borders another piece or the outside, leaving `gap` between
-neighbouring pieces.
+neighbouring pieces. The gap defaults to PRINT_GAP = 0.2 mm, a typical FDM printing clearance, which also
+keeps every STL file watertight when a slicer welds its vertices (at gap 0, voxels of one piece that touch
+only along an edge make a non-manifold edge there: see `rllock.meshes`). Gap 0 gives the exact shape.
 
 BurrTools (`.xmpuzzle`, gzip-compressed XML, puzzle format version 2, the brick grid):
   axes          identity: BurrTools' x, y, z are the label grid's x, y, z, and a shape's voxel string
@@ -23,6 +25,7 @@ BurrTools (`.xmpuzzle`, gzip-compressed XML, puzzle format version 2, the brick 
 from __future__ import annotations
 
 import gzip
+import logging
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -37,16 +40,28 @@ MESH_FORMATS = ("obj", "stl")
 FORMATS = (*MESH_FORMATS, "xmpuzzle")
 # BurrTools takes any offset beyond 10000 units as "removed"; its own disassembler writes 20000.
 _REMOVED = 20000
+# Millimetres between neighbouring pieces by default: what FDM printers need for printed pieces to fit,
+# and enough to part voxels of one piece that touch only along an edge, so STL files weld watertight.
+PRINT_GAP = 0.2
+
+log = logging.getLogger(__name__)
 
 
 def write_meshes(labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: float = 10.0,
-                 gap: float = 0.0) -> list[Path]:
+                 gap: float = PRINT_GAP) -> list[Path]:
     """One mesh file per piece, `piece_NN.<fmt>`, in piece order; returns the paths written."""
-    from rllock.meshes import assembly_meshes  # imported here: trimesh is slow to import
+    from rllock.meshes import assembly_meshes, edge_only_contacts  # imported here: trimesh is slow to import
 
     if fmt not in MESH_FORMATS:
         raise RLLockError(f"unknown mesh format {fmt!r}: use one of {', '.join(MESH_FORMATS)}")
-    validate_labels(labels)
+    k = validate_labels(labels)
+    if fmt == "stl" and gap == 0:
+        pinched = [i for i in range(1, k + 1) if edge_only_contacts(np.argwhere(labels == i))]
+        if pinched:
+            ids = ", ".join(map(str, pinched))
+            which = f"piece {ids} has" if len(pinched) == 1 else f"pieces {ids} have"
+            log.warning("%s voxels that touch only along an edge: with gap 0 such STL files are not manifold "
+                        "once a slicer welds vertices (use a gap > 0, or OBJ)", which)
     meshes = assembly_meshes(labels, voxel_size, gap)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

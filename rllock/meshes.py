@@ -7,10 +7,24 @@ up `gap` apart and the whole assembly `gap` smaller along each axis; faces betwe
 piece stay fused. The eroded solid is the union of a few boxes per voxel: the voxel's core, plus a
 bridge towards every neighbouring voxel, every full 2x2 square and every full 2x2x2 cube it belongs to.
 
-A piece whose voxels touch only along an edge has a non-manifold edge there. Its mesh keeps the two
-sheets apart with duplicate vertices, so it is a closed 2-manifold (and stays one in OBJ, which keeps
-vertex indices), but STL has no shared vertices: tools that weld STL vertices by position see that
-edge as non-manifold. Any gap > 0 separates such edges and removes the problem.
+Volume, exactly (`piece_volume`): with s the voxel size and r = gap/2, space splits into voxel interiors
+(s-2r)^3, slabs (2r)(s-2r)^2 across the faces between voxels, prisms (2r)^2(s-2r) along their edges and
+cubes (2r)^3 around their corners; the eroded piece holds exactly those whose surrounding voxels all
+belong to it. So its volume is N (s-2r)^3 + F 2r (s-2r)^2 + Q (2r)^2 (s-2r) + C (2r)^3, with N its voxels,
+F its face-neighbouring voxel pairs, Q its full 2x2 squares and C its full 2x2x2 cubes: N s^3 at gap 0.
+
+Printing, and why the export's default gap is not 0. Two voxels of one piece may touch only along an
+edge (the two voxels beside that edge belong to other pieces or the outside). At gap 0 the mesh keeps the
+two sheets that meet there topologically apart, so it is a closed 2-manifold, and stays one in OBJ, which
+keeps vertex indices. STL has no shared vertices: slicers (and trimesh) weld them by position, and then
+the sheets meet on that edge: four faces on one edge, or, where the sheets were triangulated differently,
+surfaces that touch along it without sharing mesh edges (passing an edge count, still not a 2-manifold).
+Any gap > 0 removes such contacts: every face beside the edge borders another piece or the outside, so it
+moves in by gap/2, and the two voxels end up `gap` apart along both axes across the edge (corner-only
+contacts separate the same way). So `rllock export` defaults to a gap of 0.2 mm
+(`rllock.export.PRINT_GAP`), a typical FDM printing clearance: every piece's STL is watertight as slicers
+read it, and printed pieces fit together. The functions here default to gap 0, the exact geometry;
+`edge_only_contacts` counts the contacts that make a gap-0 STL non-manifold.
 
 Meshes to voxels. A closed mesh is sampled at voxel centres on a grid whose longest side has
 `resolution` voxels, mesh axes kept; a voxel is filled when its centre is inside the solid, tested layer
@@ -52,13 +66,50 @@ def _boxes(cells: np.ndarray, inset: float) -> list[tuple[np.ndarray, np.ndarray
     return boxes
 
 
+def _blocks(cells: np.ndarray) -> dict[tuple[int, int, int], int]:
+    """For each block shape (1 or 2 voxels along each axis), how many such blocks the piece fills."""
+    filled = {tuple(int(c) for c in v) for v in cells}
+    counts = {}
+    for off in itertools.product((0, 1), repeat=3):
+        deltas = list(itertools.product(*[range(o + 1) for o in off]))
+        counts[off] = sum(all((v[0] + dx, v[1] + dy, v[2] + dz) in filled for dx, dy, dz in deltas)
+                          for v in filled)
+    return counts
+
+
+def piece_volume(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) -> float:
+    """The exact volume of `piece_mesh(cells, voxel_size, gap)` (the module docstring derives it)."""
+    r = gap / 2
+    inner, across = voxel_size - 2 * r, 2 * r
+    return float(sum(n * inner ** (3 - sum(off)) * across ** sum(off) for off, n in _blocks(cells).items()))
+
+
+def edge_only_contacts(cells: np.ndarray) -> int:
+    """How many pairs of the piece's voxels touch along an edge and nowhere else (neither voxel beside
+    that edge is in the piece): at gap 0 each is a non-manifold edge once STL vertices are welded."""
+    filled = {tuple(int(c) for c in v) for v in cells}
+    count = 0
+    for v in filled:
+        for a, b in itertools.combinations(range(3), 2):
+            for sign in (1, -1):  # +1 along a and either way along b: each pair once
+                step_a, step_b = [0, 0, 0], [0, 0, 0]
+                step_a[a], step_b[b] = 1, sign
+                beside_a = tuple(v[i] + step_a[i] for i in range(3))
+                beside_b = tuple(v[i] + step_b[i] for i in range(3))
+                across = tuple(v[i] + step_a[i] + step_b[i] for i in range(3))
+                count += across in filled and beside_a not in filled and beside_b not in filled
+    return count
+
+
 def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) -> trimesh.Trimesh:
     """The watertight mesh of one piece, given as the (n, 3) voxel coordinates it occupies, in the
-    assembled position (voxel (x, y, z) spans [x, x+1] * voxel_size along x, and so on)."""
+    assembled position (voxel (x, y, z) spans [x, x+1] * voxel_size along x, and so on), eroded by gap/2
+    where it borders other pieces or the outside."""
     if voxel_size <= 0:
         raise RLLockError(f"the voxel size must be positive, got {voxel_size}")
     if not 0 <= gap < voxel_size:
-        raise RLLockError(f"the gap must be at least 0 and smaller than the voxel size {voxel_size}, got {gap}")
+        raise RLLockError(f"the gap must be at least 0 and smaller than the voxel size {voxel_size}, "
+                          f"got {gap}")
     if len(cells) == 0:
         raise RLLockError("cannot mesh a piece with no voxels")
     inset = gap / 2 / voxel_size
@@ -117,7 +168,8 @@ def _sample_inside(solid: m3.Manifold, resolution: int) -> np.ndarray:
     origin = (lo + hi) / 2 - dims * pitch / 2
     # A tiny irrational nudge keeps sample points off faces that lie exactly halfway between grid planes,
     # where inside and outside would be a tie.
-    centres = [origin[a] + (np.arange(dims[a]) + 0.5 + 1e-4 * np.sqrt((2, 3, 5)[a])) * pitch for a in range(3)]
+    centres = [origin[a] + (np.arange(dims[a]) + 0.5 + 1e-4 * np.sqrt((2, 3, 5)[a])) * pitch
+               for a in range(3)]
     points = np.stack(np.meshgrid(centres[0], centres[1], indexing="ij"), axis=-1).reshape(-1, 2)
     grid = np.zeros(tuple(dims), dtype=bool)
     for iz, z in enumerate(centres[2]):

@@ -14,7 +14,7 @@ import numpy as np
 
 from rllock.assembly import read_assembly
 from rllock.errors import RLLockError
-from rllock.export import FORMATS, MESH_FORMATS, write_meshes, write_xmpuzzle
+from rllock.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
 from rllock.reference import REMOVAL_MODES
 from rllock.verify import Verdict, verify_labels
 
@@ -61,6 +61,10 @@ def cmd_show(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     labels, metadata = read_assembly(args.assembly)
     if args.format in MESH_FORMATS:
+        if 0 < args.voxel_size <= args.gap:
+            # The gap has a default, so a user who only made voxels small must learn which flag to change.
+            raise RLLockError(f"--gap {args.gap:g} mm must be smaller than --voxel-size {args.voxel_size:g} "
+                              "mm: give a smaller --gap (0 for none)")
         paths = write_meshes(labels, args.format, args.out, args.voxel_size, args.gap)
         log.info("wrote %d %s meshes to %s", len(paths), args.format.upper(), args.out)
     else:
@@ -97,14 +101,19 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "export", help="write the pieces as OBJ/STL meshes or a BurrTools .xmpuzzle",
         description="obj/stl: one watertight mesh per piece (OUT/piece_NN.stl), in millimetres, in its "
                     "assembled position; --gap shrinks each piece by GAP/2 on every face that touches "
-                    "another piece or the outside, so neighbouring pieces have GAP between them. "
+                    "another piece or the outside, so neighbouring pieces have GAP between them (default "
+                    f"{PRINT_GAP:g} mm, a printing clearance that also keeps STL files watertight when "
+                    "voxels of a piece touch only along an edge; --gap 0 gives the exact shape). "
                     "xmpuzzle: a BurrTools puzzle (OUT/NAME.xmpuzzle) with the pieces, the shape and this "
                     "assembly with its disassembly as the solution.")
     p.add_argument("assembly", help="assembly.json, a folder holding one, or a .puz file")
     p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("--voxel-size", type=_millimetres, default=10.0, metavar="MM",
                    help="edge of one voxel in mm (default 10)")
-    p.add_argument("--gap", type=_millimetres, default=0.0, metavar="MM",
-                   help="clearance between neighbouring pieces in mm (default 0)")
+    p.add_argument("--gap", type=_millimetres, default=PRINT_GAP, metavar="MM",
+                   help=f"clearance between neighbouring pieces in mm (default {PRINT_GAP:g}, for FDM "
+                        "printing; any gap > 0 parts voxels of a piece that touch only along an edge, so STL "
+                        "files stay watertight once a slicer welds vertices; 0: exact shape, and such STL "
+                        "edges are non-manifold)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=cmd_export)

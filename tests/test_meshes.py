@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from rllock.errors import RLLockError
-from rllock.meshes import assembly_meshes, piece_mesh
+from rllock.meshes import assembly_meshes, edge_only_contacts, piece_mesh, piece_volume
 from rllock.shapes import load_shape
 
 
@@ -101,6 +101,40 @@ def test_edge_touching_voxels_still_give_a_closed_mesh(tmp_path):
     # A gap separates the two sheets, so even a position-welded STL is closed.
     piece_mesh(cells, voxel_size=1, gap=0.1).export(tmp_path / "pinch.stl")
     assert trimesh.load(tmp_path / "pinch.stl").is_watertight
+    assert edge_only_contacts(cells) == 1
+
+
+def test_every_piece_of_a_2x2x2_block_welds_watertight_with_a_gap(tmp_path):
+    """All 255 non-empty voxel sets of a 2x2x2 block, as one piece each: they hold every way voxels can
+    meet (faces, edges only, corners only). With a gap the welded STL is closed and its volume is
+    the documented formula; at gap 0 an STL can only open where voxels touch along an edge alone."""
+    size, gap = 10.0, 0.2
+    block = list(itertools.product((0, 1), repeat=3))
+    pinched = 0
+    for mask in range(1, 256):
+        cells = np.array([v for i, v in enumerate(block) if mask >> i & 1])
+        piece_mesh(cells, size, gap).export(tmp_path / "p.stl")
+        welded = trimesh.load(tmp_path / "p.stl")
+        assert welded.is_watertight, cells.tolist()
+        assert welded.volume == pytest.approx(piece_volume(cells, size, gap), rel=1e-6)
+        piece_mesh(cells, size).export(tmp_path / "exact.stl")
+        exact = trimesh.load(tmp_path / "exact.stl")
+        assert piece_volume(cells, size) == len(cells) * size**3
+        assert exact.volume == pytest.approx(len(cells) * size**3)
+        if edge_only_contacts(cells) == 0:
+            assert exact.is_watertight, cells.tolist()
+        pinched += edge_only_contacts(cells) > 0
+    assert pinched > 50  # the edge-only case is well covered, not just present
+
+
+def test_piece_volume_counts_cores_slabs_prisms_and_corners():
+    r2 = 0.4  # 2r for a gap of 0.4 with unit voxels
+    # A 2x2x2 block: 8 cores, 12 face pairs, 6 full squares, 1 full cube: one box of side 2 - 2r.
+    cube = np.argwhere(np.ones((2, 2, 2), dtype=bool))
+    assert piece_volume(cube, 1.0, 0.4) == pytest.approx((2 - r2) ** 3)
+    # Two voxels on a diagonal share no face: two separate shrunken cubes.
+    assert piece_volume(np.array([(0, 0, 0), (1, 1, 0)]), 1.0, 0.4) == pytest.approx(2 * (1 - r2) ** 3)
+    assert piece_volume(cube, 10.0) == 8000
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +162,8 @@ def test_gap_shrinks_pieces_and_keeps_them_apart(assembly):
     for k, mesh in enumerate(meshes, start=1):
         cells = np.argwhere(assembly == k)
         assert mesh.is_watertight
-        assert 0 < mesh.volume < len(cells) * size**3
+        assert mesh.volume == pytest.approx(piece_volume(cells, size, gap), rel=1e-9)
+        assert mesh.volume < len(cells) * size**3
         np.testing.assert_allclose(mesh.bounds, [cells.min(axis=0) * size + gap / 2,
                                                  (cells.max(axis=0) + 1) * size - gap / 2], atol=1e-6)
     solids = [_manifold(m) for m in meshes]
