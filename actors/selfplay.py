@@ -1,26 +1,38 @@
-"""Self-play episodes with MCTS, as a plain class (`SelfPlayWorker`) and a Ray actor around it."""
+"""Self-play episodes with MCTS, as a plain class (`SelfPlayWorker`) and a Ray actor around it.
+
+An actor plays `episodes` episodes in lockstep per call, with the weights version it was handed, pushes
+them into the replay buffer actor (waiting for it: bounded in-flight data) and returns its statistics.
+Its thread count (numba's sampler threads; XLA runs the small network on one thread, which is fastest
+here) is set through the environment of its process (`actor_env`), so that actors never oversubscribe
+the cores they were given.
+"""
 
 from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import jax
 import numpy as np
 import ray
 
+from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
-from rllock.mcts import Episode, MCTSConfig, Searcher, play
-from rllock.network import NetConfig, PolicyValueNet
+from rllock.mcts import Episode, Searcher, TimeSplit, play
+from rllock.network import PolicyValueNet
 
-# One XLA and one numba thread per actor: actors are one per core, so more threads only contend.
-ACTOR_ENV = {
-    "JAX_PLATFORMS": "cpu",
-    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
-    "NUMBA_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-}
+
+def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
+    """Environment variables of an actor process that may use `threads` cores (and a GPU, if `gpu`)."""
+    env = {
+        "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
+        "NUMBA_NUM_THREADS": str(threads),
+        "OMP_NUM_THREADS": "1",
+    }
+    if not gpu:
+        env["JAX_PLATFORMS"] = "cpu"
+    return env
 
 
 @dataclass(frozen=True)
@@ -33,7 +45,7 @@ class TaskSpec:
     name: str
 
     @staticmethod
-    def of(task: Task) -> "TaskSpec":
+    def of(task: Task) -> TaskSpec:
         return TaskSpec(task.topology.grid, task.pieces, task.removal, task.shape_name)
 
     def make(self) -> Task:
@@ -41,37 +53,33 @@ class TaskSpec:
 
 
 @dataclass(frozen=True)
-class SelfPlayConfig:
-    episodes_per_batch: int = 8
-    """Episodes run in lockstep: each simulation evaluates all their leaves in one network call."""
-    mcts: MCTSConfig = field(default_factory=MCTSConfig)
-    net: NetConfig = field(default_factory=NetConfig)
-
-
-@dataclass(frozen=True)
 class PlayStats:
     episodes: int
     successes: int
+    decisions: int
     simulations: int
     version: int
     pid: int  # the actor's process, to notice restarts
     peak_rss_mb: float
+    seconds: float
+    times: TimeSplit
 
 
-def evaluate(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, seed: int,
-             canvas: int) -> tuple[list[Episode], float]:
+def evaluate(searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int,
+             times: TimeSplit | None = None) -> tuple[list[Episode], float]:
     """One lockstep batch of episodes and the seconds it took."""
     start = time.perf_counter()
-    episodes = play(searcher, params, task, key, batch=batch, seed=seed, canvas=canvas)
+    episodes = play(searcher, params, task, key, seed=seed, times=times)
     return episodes, time.perf_counter() - start
 
 
 class SelfPlayWorker:
-    def __init__(self, spec: TaskSpec, config: SelfPlayConfig, seed: int):
+    """Plays lockstep batches of `episodes` episodes with the weights it was last given."""
+
+    def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int):
         self.task = spec.make()
-        self.config = config
-        self.searcher = Searcher(PolicyValueNet(config.net), config.mcts, config.net.canvas,
-                                 self.task.piece_size, config.episodes_per_batch)
+        self.mcts = mcts
+        self.searcher = Searcher(PolicyValueNet(net), mcts, self.task.piece_size, episodes)
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -84,22 +92,23 @@ class SelfPlayWorker:
     def play(self) -> tuple[list[Episode], PlayStats]:
         assert self.params is not None, "set_weights first"
         self.key, sub = jax.random.split(self.key)
-        batch = self.config.episodes_per_batch
-        episodes, _ = evaluate(self.searcher, self.params, self.task, sub, batch=batch,
-                               seed=self.seed * 1_000_003 + self.batches, canvas=self.config.net.canvas)
+        times = TimeSplit()
+        episodes, seconds = evaluate(self.searcher, self.params, self.task, sub,
+                                     seed=self.seed * 1_000_003 + self.batches, times=times)
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
-        stats = PlayStats(len(episodes), sum(e.success for e in episodes),
-                          decisions * self.config.mcts.simulations, self.version, os.getpid(), peak_rss_mb())
+        stats = PlayStats(len(episodes), sum(e.success for e in episodes), decisions,
+                          decisions * self.mcts.simulations, self.version, os.getpid(), peak_rss_mb(), seconds,
+                          times)
         return episodes, stats
 
 
-@ray.remote(num_cpus=1)
+@ray.remote
 class SelfPlayActor:
     """Plays batches with the latest published weights and pushes them into the replay buffer."""
 
-    def __init__(self, spec: TaskSpec, config: SelfPlayConfig, seed: int, buffer):
-        self.worker = SelfPlayWorker(spec, config, seed)
+    def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, buffer):
+        self.worker = SelfPlayWorker(spec, net, mcts, episodes, seed)
         self.buffer = buffer
 
     def pid(self) -> int:
@@ -110,5 +119,6 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
+        if self.buffer is not None:
+            ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
         return stats

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from rllock.env import peak_rss_mb
+from rllock.errors import RLLockError
 from rllock.mcts import Episode
 
 
@@ -77,7 +78,8 @@ class ReplayBuffer:
         with np.load(path) as data:
             size = int(data["size"])
             if size > self.capacity:
-                raise ValueError(f"snapshot holds {size} transitions, capacity is {self.capacity}")
+                raise RLLockError(f"replay snapshot {path} holds {size} transitions, more than --buffer-capacity "
+                                  f"{self.capacity}")
             for name in self._ARRAYS:
                 if name in data:  # snapshots from before a field existed leave it at its default
                     getattr(self, name)[:size] = data[name]

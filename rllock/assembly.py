@@ -35,15 +35,9 @@ from rllock.verify import CHECKER_NAME, CHECKER_VERSION, Verdict, verify_labels
 
 FORMAT = "rllock-assembly"
 
-# Renderers that also get written next to each assembly (the picture, for example); a renderer takes
-# (labels grid, verdict, output folder). Registered by modules that draw, so this one needs no plotting.
-AssemblyHook = Callable[[np.ndarray, Verdict, Path], None]
-_extra_writers: list[AssemblyHook] = []
-
-
-def register_writer(hook: AssemblyHook) -> None:
-    if hook not in _extra_writers:
-        _extra_writers.append(hook)
+# Draws a picture of an assembly next to it: (labels grid, verdict, output folder). Passed in by callers
+# that want pictures (`rllock.render.write_picture`), so this module needs no plotting library.
+PictureWriter = Callable[[np.ndarray, Verdict, Path], None]
 
 
 def read_assembly(path: str | Path) -> tuple[np.ndarray, dict]:
@@ -81,8 +75,10 @@ def write_assembly(
     method: dict,
     seed: int,
     timings: dict,
+    picture: PictureWriter | None = None,
 ) -> dict:
-    """Verify `labels` and, only if valid, write assembly.json and assembly.puz into `out_dir`.
+    """Verify `labels` and, only if valid, write assembly.json and assembly.puz into `out_dir`, and the
+    picture when a `picture` writer is given.
 
     Returns the JSON document. An invalid assembly here is a bug upstream, so it raises.
     """
@@ -124,6 +120,6 @@ def write_assembly(
     write_puz(out / "assembly.puz", labels)
     with open(out / "assembly.puz", "a") as fh:
         fh.write(f"# verified valid by {CHECKER_NAME} v{CHECKER_VERSION}, removal={removal}\n")
-    for hook in _extra_writers:
-        hook(labels, verdict, out)
+    if picture is not None:
+        picture(labels, verdict, out)
     return doc

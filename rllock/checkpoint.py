@@ -3,11 +3,13 @@
 A training run's log directory holds `checkpoints/<step>/` (the latest few) and `best/<step>/` (the
 checkpoint with the best validation success rate). Each step directory has `state/` (params, optimizer
 state, step, PRNG key: an orbax StandardSave, restored device-independently against an abstract tree
-built on this host) and `meta/metadata` (JSON: the task, the configs, the validation score).
+built on this host) and `meta/metadata` (JSON, `meta`): the task identity, the run's whole config (the
+one document that both `--resume` and `generate` read), the validation score and the run's counters.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -17,12 +19,35 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from rllock.config import TrainConfig, from_json
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
 from rllock.shapes import from_xfastest, to_xfastest
 from rllock.verify import CHECKER_VERSION
 
 FORMAT = "rllock-checkpoint"
+META_VERSION = 2
+
+
+def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = None) -> TrainConfig:
+    """The config of the training run in `logdir`, read from its newest readable checkpoint, with
+    `minutes` more to train (and a new step limit, when given)."""
+    for step in saved_steps(logdir / "checkpoints")[::-1]:
+        try:
+            doc = read_meta(logdir / "checkpoints" / str(step))["config"]
+        except (RLLockError, KeyError):
+            continue
+        config = from_json(TrainConfig, doc)
+        limit = max_learner_steps if max_learner_steps is not None else config.max_learner_steps
+        return dataclasses.replace(config, logdir=str(logdir), minutes=minutes, max_learner_steps=limit)
+    raise RLLockError(f"cannot resume {logdir}: it holds no readable checkpoint (start it again without --resume)")
+
+
+def meta(config: dict, task: Task, step: int, validation: dict | None, counters: dict) -> dict:
+    """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas."""
+    return {"format": FORMAT, "version": META_VERSION, "step": step,
+            "task": task_identity(task, config["net"]["canvas"]), "config": config, "validation": validation,
+            "counters": counters}
 
 
 def task_identity(task: Task, canvas: int) -> dict:
@@ -103,12 +128,20 @@ def read_meta(step_dir: Path) -> dict:
     return meta
 
 
-def restore_like(step_dir: Path, template: Any) -> Any:
-    """The state saved in `step_dir`, with the structure, shapes and dtypes of `template`, placed on this
-    host's default device (so a GPU-trained checkpoint loads on a CPU-only machine)."""
-    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any:
+    """The state saved in `step_dir`, with the structure, shapes and dtypes of `template` (arrays or
+    `jax.eval_shape` structs), placed on this host's default device (so a GPU-trained checkpoint loads on
+    a CPU-only machine). With `partial`, `template` may name a subtree of what was saved, such as
+    {"params": ...}: only that is read."""
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    abstract = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), template)
+    path = (step_dir / "state").absolute()
     try:
-        return ocp.StandardCheckpointer().restore((step_dir / "state").absolute(), abstract)
+        if partial:
+            args = ocp.args.PyTreeRestore(item=abstract, partial_restore=True,
+                                          restore_args=ocp.checkpoint_utils.construct_restore_args(abstract))
+            return ocp.PyTreeCheckpointer().restore(path, args=args)
+        return ocp.StandardCheckpointer().restore(path, abstract)
     except Exception as exc:  # orbax raises many kinds of errors for damaged files
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {first[:200]}") from None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import os
@@ -14,16 +13,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rllock.assembly import read_assembly, register_writer, write_assembly
+from rllock.assembly import read_assembly, write_assembly
+from rllock.config import EVALUATION_MODES, SelfPlayConfig, TrainConfig
 from rllock.errors import RLLockError
+from rllock.flags import add_flags, field_docs, from_flags
 from rllock.reference import REMOVAL_MODES
 from rllock.results_cli import add_commands as add_result_commands
 
 log = logging.getLogger("rllock")
-
-# A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
-# set the variable yourself to change it. JAX is imported later, by the commands that need it.
-os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
 
 
 def _positive_float(text: str) -> float:
@@ -71,6 +68,12 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0 if verdict.valid else 1
 
 
+def _picture():
+    from rllock.render import write_picture  # matplotlib: loaded only where pictures are drawn
+
+    return write_picture
+
+
 def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.env import make_task
     from rllock.solve import SearchConfig, search
@@ -78,6 +81,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     config = SearchConfig()
     out = _fresh_out(args.out)
+    picture = _picture()
     start = time.perf_counter()
     found = 0
     with tqdm(total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly",
@@ -87,7 +91,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
             folder = out / f"assembly_{found:03d}"
             write_assembly(folder, f.labels, removal=task.removal, shape=task.shape_name,
                            method={"name": "search", **asdict(config)}, seed=args.seed,
-                           timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions})
+                           timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
+                           picture=picture)
             log.info("wrote %s (%.2f s)", folder, f.seconds)
             bar.update(1)
             if found >= args.count:
@@ -135,30 +140,6 @@ def cmd_bench_solve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_dataclass_args(p: argparse.ArgumentParser, cls, skip: tuple[str, ...] = ()) -> None:
-    """One --flag per field of a config dataclass, typed by its default; the field docstrings live in
-    the dataclass (cleanrl style: one typed config per program)."""
-    for f in dataclasses.fields(cls):
-        if f.name in skip:
-            continue
-        flag = "--" + f.name.replace("_", "-")
-        default = f.default
-        if f.name in ("shape", "pieces"):
-            p.add_argument(flag, default=None, type=str if f.name == "shape" else int,
-                           help="required unless --resume")
-        elif isinstance(default, tuple):
-            p.add_argument(flag, default=default, type=lambda t: tuple(int(v) for v in t.split(",")),
-                           help=f"comma-separated (default {','.join(map(str, default))})")
-        elif isinstance(default, bool):
-            p.add_argument(flag, default=default, action=argparse.BooleanOptionalAction)
-        elif f.name == "removal":
-            p.add_argument(flag, default=default, choices=REMOVAL_MODES)
-        elif default is None:
-            p.add_argument(flag, default=None, type=int if f.name == "resolution" else str)
-        else:
-            p.add_argument(flag, default=default, type=type(default), help=f"default {default}")
-
-
 def _ray_on_loopback_unless(address: str | None) -> None:
     """A Ray instance started here serves this machine only: bind it to loopback, not to the host's
     outward address (Ray reads this setting when it is imported). A cluster run keeps Ray's default."""
@@ -166,38 +147,30 @@ def _ray_on_loopback_unless(address: str | None) -> None:
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
-def _resume_address(logdir: str) -> str | None:
-    try:
-        return json.loads((Path(logdir) / "config.json").read_text()).get("address")
-    except (OSError, ValueError, AttributeError):
-        return None  # load_resume reports an unreadable config properly
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    _ray_on_loopback_unless(_resume_address(args.resume) if args.resume else args.address)
-    from rllock.config import TrainConfig
-    from rllock.train import load_resume, train
-
     if args.resume:
-        default_minutes = next(f.default for f in dataclasses.fields(TrainConfig) if f.name == "minutes")
-        config = load_resume(Path(args.resume), args.minutes if args.minutes != default_minutes else None)
+        from rllock.checkpoint import run_config
+
+        config = run_config(Path(args.resume), minutes=args.minutes, max_learner_steps=args.max_learner_steps)
     else:
         if args.shape is None or args.pieces is None:
             raise RLLockError("train needs --shape and --pieces (or --resume LOGDIR)")
-        config = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
-    if config.minutes <= 0 or config.pieces < 2:
-        raise RLLockError("--minutes must be positive and --pieces at least 2")
+        config = from_flags(TrainConfig, args)
+    _ray_on_loopback_unless(config.address)
+    from orchestration.train import train
+
     result = train(config, resume=bool(args.resume))
     if result["interrupted"]:
         sys.stdout.write(f"train: stopped at learner step {result['steps']}; resume with: "
                          f"rllock train --resume {result['logdir']}\n")
         return 130
     val = result["validation"]
+    last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
     sys.stdout.write(
         f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
         f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
-        f"{result['seconds']:.0f} s; last validation {100 * val['success_rate']:.1f}% valid, best "
-        f"{100 * result['best_success_rate']:.1f}%\n"
+        f"{result['seconds']:.0f} s; last validation {last}, best "
+        f"{max(0.0, 100 * result['best_success_rate']):.1f}%\n"
         f"checkpoints: {result['logdir']}/best (best) and {result['logdir']}/checkpoints (latest)\n"
         f"watch it: tensorboard --logdir {result['logdir']}\n")
     return 0
@@ -228,12 +201,21 @@ def _load_for(args: argparse.Namespace):
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from rllock.generate import generate
-
     out = _fresh_out(args.out)
+    if args.actors < 0:
+        raise RLLockError(f"--actors must be >= 0, got {args.actors}")
     policy = _load_for(args)
-    result = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed,
-                      out=out)
+    settings = dict(count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed, out=out,
+                    picture=_picture())
+    if args.actors:
+        _ray_on_loopback_unless(args.address)
+        from orchestration.generate import generate_on_ray
+
+        result = generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
+    else:
+        from rllock.generate import generate
+
+        result = generate(policy, **settings)
     task = policy.task
     if result.valid == 0:
         sys.stdout.write(f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
@@ -287,24 +269,34 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_selfplay(args: argparse.Namespace) -> int:
-    _ray_on_loopback_unless(None)
-    from rllock.bench_selfplay import bench_selfplay
-
     try:
         counts = [int(c) for c in args.actors.split(",")]
     except ValueError:
         raise RLLockError(f"--actors takes a comma-separated list of counts, got {args.actors!r}") from None
     if min(counts) < 1 or args.episodes_per_batch < 1 or args.simulations < 1:
         raise RLLockError("--actors, --episodes-per-batch and --simulations must be at least 1")
-    rows = bench_selfplay(args, counts)
+    _ray_on_loopback_unless(None)
+    from orchestration.bench import bench_selfplay
+    from rllock.config import MCTSConfig, NetConfig
+    from rllock.env import make_task
+    from rllock.network import fit_canvas
+
+    task = make_task(args.shape, args.pieces)
+    net = fit_canvas(task, NetConfig(canvas=args.canvas))
+    rows = bench_selfplay(task, net, MCTSConfig(simulations=args.simulations),
+                          SelfPlayConfig(episodes_per_batch=args.episodes_per_batch, evaluation=args.evaluation),
+                          counts, args.seconds)
     if args.json:
-        sys.stdout.write(json.dumps({"rows": rows}) + "\n")
+        sys.stdout.write(json.dumps({"shape": args.shape, "pieces": args.pieces, "canvas": net.canvas,
+                                     "simulations": args.simulations, "rows": rows}) + "\n")
     else:
         base = rows[0]["episodes_per_sec"]
         for r in rows:
-            sys.stdout.write(f"{r['actors']} actor(s): {r['episodes_per_sec']:.3f} episodes/s, "
-                             f"{r['simulations_per_sec']:.0f} simulations/s, x{r['episodes_per_sec'] / base:.2f} "
-                             f"vs {rows[0]['actors']}\n")
+            split = ", ".join(f"{k} {v:.2f}" for k, v in r["ms_per_simulation"].items())
+            sys.stdout.write(f"{r['actors']} actor(s) ({r['mode']}, {r['threads_per_actor']} thread(s) each): "
+                             f"{r['episodes_per_sec']:.3f} episodes/s, {r['simulations_per_sec']:.0f} simulations/s, "
+                             f"x{r['episodes_per_sec'] / base:.2f} vs {rows[0]['actors']}; ms per simulation "
+                             f"and episode row: {split}\n")
     return 0
 
 
@@ -359,16 +351,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_solve)
 
-    from rllock.config import TrainConfig
-
     p = sub.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
-    _add_dataclass_args(p, TrainConfig)
+    add_flags(p, TrainConfig, required_unless="--resume",
+              choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES})
     p.add_argument("--resume", metavar="LOGDIR", default=None,
-                   help="continue the run in LOGDIR (its config; --minutes sets the time to add)")
+                   help="continue the run in LOGDIR with its saved config; --minutes is the time to add, "
+                        "--max-learner-steps a new step limit")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("generate", help="assemblies from a trained checkpoint (batched MCTS)")
     _add_checkpoint_args(p)
+    p.add_argument("--actors", type=int, default=0,
+                   help="play the rounds on this many Ray actors, one core each (default 0: in this process, "
+                        "on all cores)")
+    p.add_argument("--address", default=None, help="with --actors: join this Ray cluster (HOST:PORT or auto)")
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
     p.set_defaults(func=cmd_generate)
 
@@ -383,8 +379,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pieces", type=int, default=9)
     p.add_argument("--seconds", type=_positive_float, default=60.0, help="measured seconds per actor count")
     p.add_argument("--simulations", type=int, default=256)
-    p.add_argument("--canvas", type=int, default=8)
+    p.add_argument("--canvas", type=int, default=None, help="default: the smallest that fits the shape")
     p.add_argument("--episodes-per-batch", type=int, default=8)
+    p.add_argument("--evaluation", choices=EVALUATION_MODES, default="auto",
+                   help=field_docs(SelfPlayConfig)["evaluation"])
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_selfplay)
 
@@ -399,11 +397,10 @@ def main(argv: list[str] | None = None) -> int:
                         force=True)  # ray/absl install root handlers on import; ours must win
     for noisy in ("numba", "jax", "absl", "matplotlib", "PIL", "orbax", "ray"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    # A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
+    # set the variable yourself to change it. JAX is imported later, by the commands that need it.
+    os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
     try:
-        if args.command in ("solve", "generate", "train"):
-            from rllock.render import write_picture  # matplotlib: loaded only where pictures are drawn
-
-            register_writer(write_picture)  # every assembly these commands write gets its picture
         if getattr(args, "count", 1) < 1:
             raise RLLockError(f"--count must be at least 1, got {args.count}")
         return args.func(args)

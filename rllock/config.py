@@ -1,34 +1,59 @@
 """Every program's typed configuration, in one light module (no JAX or Ray imports), so that the
-command line can build its parser, and tests their settings, without loading the machinery."""
+command line can build its parser, and tests their settings, without loading the machinery.
+
+A training run has one `TrainConfig`, which nests the network, search, learner and self-play configs;
+it is saved once, in every checkpoint's metadata, and that document is what both `--resume` and
+`generate` read. The command line's flags are generated from these dataclasses (`rllock.flags`), one
+flag per leaf field, with the field docstrings below as their help.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from rllock.errors import RLLockError
+
+EVALUATION_MODES = ("auto", "per-actor", "lockstep")
 
 
 @dataclass(frozen=True)
 class NetConfig:
-    canvas: int = 8
-    """Side of the cubic canvas; smaller shapes are padded, larger ones are an error."""
+    canvas: int | None = None
+    """Side of the cubic canvas the network sees; default: the smallest that fits the shape (a
+    multiple of 2^(levels-1)). The paper uses 8."""
     features: tuple[int, ...] = (16, 32, 64)
     """Channels per U-Net level; each level halves the resolution."""
     value_hidden: int = 64
+    """Width of the value head's hidden layer."""
+
+    def levels_step(self) -> int:
+        """The canvas side must be a multiple of this (each level halves it)."""
+        return 1 << (len(self.features) - 1)
+
+    def fitted(self, dims: tuple[int, ...]) -> NetConfig:
+        """This config with a concrete canvas for a shape of `dims` (the smallest that fits, unless set)."""
+        if self.canvas is not None:
+            return self
+        step = self.levels_step()
+        return dataclasses.replace(self, canvas=-(-max(dims) // step) * step)
 
 
 @dataclass(frozen=True)
 class MCTSConfig:
     simulations: int = 256
-    """Simulations per decision."""
+    """Simulations per decision (the paper's 256)."""
     max_considered: int = 16
     """Gumbel MuZero's max_num_considered_actions at the root."""
     raw_samples: int = 1024
-    """M_s: raw chunks sampled when a node is expanded."""
+    """M_s: at most this many raw chunks are sampled when a node is expanded."""
     candidates: int = 32
-    """M_c: accepted chunks kept as a node's candidate actions."""
+    """M_c: sampling stops once this many distinct accepted chunks are found; they are the node's
+    candidate actions."""
     gumbel_scale: float = 1.0
+    """Scale of the Gumbel noise at the root (0 = deterministic search)."""
 
 
 @dataclass(frozen=True)
@@ -38,7 +63,22 @@ class LearnerConfig:
     batch_size: int = 64
     """Transitions per update."""
     symmetries: bool = True
-    """Map each sampled transition through a random symmetry of the shape (see topology.symmetries)."""
+    """Map each sampled transition through a random symmetry of the shape (axis permutations and
+    reflections)."""
+
+
+@dataclass(frozen=True)
+class SelfPlayConfig:
+    actors: int = 0
+    """Self-play actors; 0 = one per CPU core left after the learner's."""
+    episodes_per_batch: int = 8
+    """Episodes an actor plays in lockstep: each simulation evaluates all their leaves in one network
+    call."""
+    evaluation: str = "auto"
+    """Where the network runs for self-play. per-actor: each actor on its own CPU core; lockstep: one
+    worker with all the actors' episodes in one large lockstep batch, on the GPU when there is one, with
+    the sampler spread over the cores; auto: lockstep when JAX sees a GPU, else per-actor (faster on
+    CPUs, see docs/benchmarks.md)."""
 
 
 @dataclass(frozen=True)
@@ -46,36 +86,29 @@ class TrainConfig:
     shape: str
     """Built-in name or shape file."""
     pieces: int
-    """K."""
+    """K, the number of pieces."""
     removal: str = "straight"
+    """straight: one axis slide per piece; path: DESIA's multi-move test."""
     resolution: int | None = None
     """For mesh shapes: voxels along the longest side."""
-    actors: int = 0
-    """Self-play actors; 0 = one per CPU core left after the learner's."""
     minutes: float = 10.0
-    """Wall-clock training time (on resume: the time to add)."""
+    """Wall-clock budget, a hard limit: the run returns within it plus 30 s, its last checkpoint
+    included (on resume: the time to add)."""
+    max_learner_steps: int | None = None
+    """Stop after this many learner steps in all (default: only the time budget stops the run)."""
     logdir: str = "runs/latest"
+    """Checkpoints, replay snapshots, TensorBoard events and the best assembly go here."""
     seed: int = 0
+    """Seeds the network, the learner's sampling and every actor."""
     address: str | None = None
     """Join this Ray cluster instead of starting a local Ray instance."""
-    canvas: int = 8
-    features: tuple[int, ...] = (16, 32, 64)
-    simulations: int = 256
-    max_considered: int = 16
-    raw_samples: int = 1024
-    candidates: int = 32
-    episodes_per_batch: int = 8
-    learning_rate: float = 5e-5
-    batch_size: int = 64
     buffer_capacity: int = 50_000
     """Transitions kept; the oldest are overwritten."""
-    min_buffer: int = 256
-    """Transitions in the buffer before the learner starts."""
+    min_buffer: int | None = None
+    """Transitions in the buffer before the learner starts (default: one batch)."""
     success_fraction: float = 0.0
     """Share of each mini-batch drawn from successful episodes' transitions, while there are any
     (self-imitation, for tasks where successes are rare); 0 = uniform replay, as in the paper."""
-    symmetries: bool = True
-    """Augment mini-batches with the shape's symmetries (axis permutations and reflections)."""
     replay_ratio: float = 4.0
     """At most this many sampled transitions per transition produced by self-play."""
     publish_every: int = 25
@@ -83,41 +116,78 @@ class TrainConfig:
     max_policy_lag: int = 4
     """Weight versions an in-flight self-play batch may fall behind before the learner waits."""
     validate_minutes: float = 5.0
+    """Minutes between validations (fixed seeds, so scores compare across the run)."""
     validation_episodes: int = 64
+    """Episodes per validation (the paper's 64)."""
     checkpoint_minutes: float = 2.0
+    """Minutes between checkpoints; the first comes right after the first learner step."""
+    net: NetConfig = field(default_factory=NetConfig)
+    mcts: MCTSConfig = field(default_factory=MCTSConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    selfplay: SelfPlayConfig = field(default_factory=SelfPlayConfig)
 
-    def net(self) -> NetConfig:
-        return NetConfig(canvas=self.canvas, features=tuple(self.features))
-
-    def mcts(self) -> MCTSConfig:
-        return MCTSConfig(simulations=self.simulations, max_considered=self.max_considered,
-                          raw_samples=self.raw_samples, candidates=self.candidates)
-
-    def learner(self) -> LearnerConfig:
-        return LearnerConfig(learning_rate=self.learning_rate, batch_size=self.batch_size,
-                             symmetries=self.symmetries)
+    @property
+    def warmup(self) -> int:
+        """Transitions before learning starts."""
+        return self.learner.batch_size if self.min_buffer is None else self.min_buffer
 
     def validate(self) -> None:
         """Bad settings are one-line errors here, not tracebacks deep inside a run."""
-        positive = ("minutes", "canvas", "simulations", "max_considered", "raw_samples", "candidates",
-                    "episodes_per_batch", "learning_rate", "batch_size", "buffer_capacity", "replay_ratio",
-                    "publish_every", "max_policy_lag", "validate_minutes", "validation_episodes",
-                    "checkpoint_minutes")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
-        if self.actors < 0 or self.min_buffer < 0 or not self.features or min(self.features) < 1:
+        positive = {
+            "minutes": self.minutes, "simulations": self.mcts.simulations,
+            "max_considered": self.mcts.max_considered, "raw_samples": self.mcts.raw_samples,
+            "candidates": self.mcts.candidates, "episodes_per_batch": self.selfplay.episodes_per_batch,
+            "learning_rate": self.learner.learning_rate, "batch_size": self.learner.batch_size,
+            "buffer_capacity": self.buffer_capacity, "replay_ratio": self.replay_ratio,
+            "publish_every": self.publish_every, "max_policy_lag": self.max_policy_lag,
+            "validate_minutes": self.validate_minutes, "validation_episodes": self.validation_episodes,
+            "checkpoint_minutes": self.checkpoint_minutes,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
+        if self.pieces < 2:
+            raise RLLockError(f"--pieces must be at least 2, got {self.pieces}")
+        if self.net.canvas is not None and self.net.canvas < 1:
+            raise RLLockError(f"--canvas must be positive, got {self.net.canvas}")
+        if self.selfplay.actors < 0 or (self.min_buffer or 0) < 0 or not self.net.features \
+                or min(self.net.features) < 1:
             raise RLLockError("--actors and --min-buffer must be >= 0 and --features positive")
+        if self.max_learner_steps is not None and self.max_learner_steps < 1:
+            raise RLLockError(f"--max-learner-steps must be at least 1, got {self.max_learner_steps}")
         if not 0.0 <= self.success_fraction <= 1.0:
             raise RLLockError(f"--success-fraction must lie in [0, 1], got {self.success_fraction}")
-        if self.batch_size > self.buffer_capacity:
+        if self.learner.batch_size > self.buffer_capacity:
             raise RLLockError("--batch-size cannot exceed --buffer-capacity")
+        if self.selfplay.evaluation not in EVALUATION_MODES:
+            raise RLLockError(f"--evaluation must be one of {', '.join(EVALUATION_MODES)}, "
+                              f"got {self.selfplay.evaluation!r}")
         if Path(self.logdir).exists() and not Path(self.logdir).is_dir():
             raise RLLockError(f"--logdir {self.logdir} is a file")
 
-    @staticmethod
-    def from_json(doc: dict) -> "TrainConfig":
-        known = {f.name for f in fields(TrainConfig)}
-        values = {k: v for k, v in doc.items() if k in known}
-        values["features"] = tuple(values.get("features", (16, 32, 64)))
-        return TrainConfig(**values)
+
+def to_json(config: Any) -> dict:
+    """A config as a JSON-ready document (nested dataclasses become nested objects)."""
+    return dataclasses.asdict(config)
+
+
+def from_json(cls: type, doc: dict) -> Any:
+    """The config of class `cls` saved by `to_json` (unknown keys are ignored, missing ones default)."""
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in doc:
+            continue
+        value = doc[f.name]
+        sub = _dataclass_type(f)
+        if sub is not None:
+            value = from_json(sub, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        values[f.name] = value
+    return cls(**values)
+
+
+def _dataclass_type(f: dataclasses.Field) -> type | None:
+    """The nested config class of a field, or None for a leaf."""
+    factory = f.default_factory
+    return factory if factory is not dataclasses.MISSING and dataclasses.is_dataclass(factory) else None

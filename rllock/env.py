@@ -104,10 +104,30 @@ def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) ->
 
 
 def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_candidates: int) -> np.ndarray:
-    """A node's candidate actions: up to `max_candidates` distinct accepted chunks, drawn uniformly
-    from the accepted ones among `num_samples` raw samples, each as sorted voxel numbers: int32[M, n].
-    An empty result means a dead end."""
-    return distinct_subset(sample_accepted(task, state, seed=seed, num_samples=num_samples), max_candidates, seed)
+    """A node's candidate actions: the first `max_candidates` distinct accepted chunks among at most
+    `num_samples` raw samples (see `fast`), each as sorted voxel numbers: int32[M, n]. An empty result
+    means a dead end."""
+    topo = task.topology
+    out = np.zeros((max_candidates, task.piece_size), np.int32)
+    found, _ = fast.node_candidates(
+        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, state.labels, state.placed + 1,
+        task.piece_size, num_samples, max_candidates, task.removal == "path", seed, out,
+    )
+    return out[:found]
+
+
+def candidates_many(task: Task, states: list[State], seeds: np.ndarray, *, num_samples: int,
+                    max_candidates: int) -> tuple[list[np.ndarray], int]:
+    """`candidates` for several states in one compiled call (one thread per state); also the raw
+    samples drawn in all."""
+    topo = task.topology
+    labels = np.stack([s.labels for s in states])
+    pieces = np.array([s.placed + 1 for s in states], np.int64)
+    out, found, drawn = fast.candidates_many(
+        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, labels, pieces, task.piece_size,
+        num_samples, max_candidates, task.removal == "path", np.asarray(seeds, np.int64),
+    )
+    return [out[b, : found[b]] for b in range(len(states))], int(drawn.sum())
 
 
 def distinct_subset(accepted: np.ndarray, count: int, seed: int) -> np.ndarray:

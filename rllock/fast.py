@@ -16,12 +16,19 @@ Per chunk, the checks then cost O(n) (plus a BFS that stops once the cut is know
   - interlocking: the contact counts of A_i are those of A_(i-1) with the chunk's contacts moved
     from R to the new piece; then an SCC test per axis.
 Checks run cheapest first and stop at the first failure.
+
+A search node's candidates (`node_candidates`, and `candidates_many` for a whole batch of nodes, one
+thread per node with `prange`) are the first M_c distinct accepted chunks in sampling order, drawn from
+at most M_s raw samples: sampling stops as soon as M_c distinct ones are found. Since raw samples are
+independent and identically distributed, that is the same distribution as taking the accepted chunks
+of all M_s samples in a random order and keeping the first M_c distinct ones (a chunk the sampler
+draws more often is more likely to be a candidate); tests/test_fast.py checks it statistically.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 CONNECTED, REMOVABLE, INTERLOCKING = 1, 2, 4
 ALL_CHECKS = CONNECTED | REMOVABLE | INTERLOCKING
@@ -362,3 +369,78 @@ def sample_raw(nbr, ray, labels, piece, n, num_samples, seed):
         if _sample_chunk(seeds, nbr, part_of, piece, n, out[k], in_chunk, front, front_mark, s + 1):
             k += 1
     return out[:k]
+
+
+@njit(cache=True, nogil=True)
+def _insertion_sort(values, n):
+    for i in range(1, n):
+        x = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > x:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = x
+
+
+@njit(cache=True, nogil=True)
+def _seen(out, k, chunk, n):
+    for c in range(k):
+        same = True
+        for j in range(n):
+            if out[c, j] != chunk[j]:
+                same = False
+                break
+        if same:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def node_candidates(nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples, max_candidates,
+                    removal_path, seed, out):
+    """A node's candidate actions into `out` [>= max_candidates, n]: the first `max_candidates` distinct
+    accepted chunks (sorted voxel numbers) among at most `num_samples` raw samples, in sampling order.
+    Returns (candidates found, raw samples drawn)."""
+    np.random.seed(seed)
+    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
+    if seeds.shape[0] == 0:
+        return 0, 0
+    n_vox = labels.shape[0]
+    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
+        n_vox, n_lines, piece + 1, index.shape)
+    front_mark = np.zeros(n_vox, np.int64)
+    front = np.empty(n_vox, np.int32)
+    chunk = np.empty(n, np.int32)
+    k = 0
+    s = 0
+    while s < num_samples and k < max_candidates:
+        s += 1
+        if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
+            continue
+        verdict = _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
+                         False, in_chunk, mark, queue, line_count, counts, visited, off_queue, s)
+        if verdict != ALL_CHECKS:
+            continue
+        _insertion_sort(chunk, n)
+        if not _seen(out, k, chunk, n):
+            out[k, :] = chunk
+            k += 1
+    return k, s
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def candidates_many(nbr, ray, line, n_lines, coords, index, labels, pieces, n, num_samples, max_candidates,
+                    removal_path, seeds):
+    """`node_candidates` for B nodes at once, one thread per node: labels int16[B, N], pieces and seeds
+    int64[B] -> (candidates int32[B, max_candidates, n], counts int32[B], raw samples drawn int64[B]).
+    Each node seeds its own thread's generator, so the result does not depend on the thread count."""
+    batch = labels.shape[0]
+    out = np.zeros((batch, max_candidates, n), np.int32)
+    found = np.zeros(batch, np.int32)
+    drawn = np.zeros(batch, np.int64)
+    for b in prange(batch):
+        k, s = node_candidates(nbr, ray, line, n_lines, coords, index, labels[b], pieces[b], n, num_samples,
+                               max_candidates, removal_path, seeds[b], out[b])
+        found[b] = k
+        drawn[b] = s
+    return out, found, drawn

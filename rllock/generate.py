@@ -1,5 +1,10 @@
 """Batched inference from a checkpoint: the paper's protocol (batches of episodes until C valid
-assemblies or the time limit), every result verified before it is written."""
+assemblies or the time limit), every result verified before it is written.
+
+Round r of a protocol with seed s plays one lockstep batch with PRNG key fold_in(key(s), r) and node
+store seed s * 100003 + r, so the same rounds give the same episodes whether they run here
+(`generate`) or spread over Ray actors (`orchestration.generate`).
+"""
 
 from __future__ import annotations
 
@@ -11,12 +16,12 @@ from pathlib import Path
 import jax
 from tqdm import tqdm
 
-from learner.learner import Learner, LearnerConfig
 from rllock import checkpoint as ckpt
-from rllock.assembly import write_assembly
+from rllock.assembly import PictureWriter, write_assembly
+from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
-from rllock.mcts import MCTSConfig, Searcher, play
-from rllock.network import NetConfig, PolicyValueNet
+from rllock.mcts import Episode, Searcher, play
+from rllock.network import PolicyValueNet, init_params
 
 log = logging.getLogger(__name__)
 
@@ -26,38 +31,47 @@ class Policy:
     """A network and the search settings it was trained with, for one task."""
 
     task: Task
-    net: NetConfig
+    net: NetConfig  # with a concrete canvas
     mcts: MCTSConfig
     params: dict
     source: str  # checkpoint path, or "untrained (seed N)"
     step: int
 
 
-def _configs(meta: dict) -> tuple[NetConfig, MCTSConfig, LearnerConfig]:
-    net = meta["net"]
-    return (NetConfig(canvas=net["canvas"], features=tuple(net["features"]), value_hidden=net["value_hidden"]),
-            MCTSConfig(**meta["mcts"]), LearnerConfig(**meta["learner"]))
+def _configs(meta: dict) -> tuple[NetConfig, MCTSConfig]:
+    if "config" in meta:
+        return from_json(NetConfig, meta["config"]["net"]), from_json(MCTSConfig, meta["config"]["mcts"])
+    return from_json(NetConfig, meta["net"]), from_json(MCTSConfig, meta["mcts"])  # metadata version 1
 
 
 def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
     """The policy in a checkpoint (a run's log directory: its best checkpoint). `expect`: a task identity
-    the checkpoint must match."""
+    the checkpoint must match. Only the parameters are read, against a template from `jax.eval_shape`."""
     step_dir = ckpt.find_step_dir(Path(path))
     meta = ckpt.read_meta(step_dir)
     if expect is not None:
         ckpt.check_same_task(meta["task"], expect, step_dir)
     task = ckpt.task_from_identity(meta["task"])
-    net, mcts, learner_config = _configs(meta)
-    state = ckpt.restore_like(step_dir, Learner(task, net, learner_config, jax.random.PRNGKey(0)).state())
-    return Policy(task, net, mcts, state["params"], str(step_dir), int(state["step"]))
+    net, mcts = _configs(meta)
+    template = {"params": jax.eval_shape(init_params, net, jax.random.PRNGKey(0))}
+    params = ckpt.restore_like(step_dir, template, partial=True)["params"]
+    return Policy(task, net, mcts, params, str(step_dir), int(meta["step"]))
 
 
 def untrained_like(policy: Policy, seed: int) -> Policy:
     """The same network and search with freshly initialised weights: the baseline learning must beat."""
-    from rllock.network import init_params
-
     return Policy(policy.task, policy.net, policy.mcts, init_params(policy.net, jax.random.PRNGKey(seed)),
                   f"untrained (seed {seed})", 0)
+
+
+def searcher_for(policy: Policy, batch: int) -> Searcher:
+    return Searcher(PolicyValueNet(policy.net), policy.mcts, policy.task.piece_size, batch)
+
+
+def play_round(searcher: Searcher, policy: Policy, seed: int, round_: int) -> list[Episode]:
+    """Round `round_` of the protocol with seed `seed` (module docstring)."""
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
+    return play(searcher, policy.params, policy.task, key, seed=seed * 100_003 + round_)
 
 
 @dataclass(frozen=True)
@@ -72,40 +86,59 @@ class GenerateResult:
         return self.valid / max(self.episodes, 1)
 
 
-def generate(policy: Policy, *, count: int, batch: int, time_limit: float, seed: int,
-             out: Path | None = None, progress: bool = True) -> GenerateResult:
-    """Batches of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
-    seconds (a batch that has started finishes). Writes each one under `out` when given."""
-    task = policy.task
-    searcher = Searcher(PolicyValueNet(policy.net), policy.mcts, policy.net.canvas, task.piece_size, batch)
-    key = jax.random.PRNGKey(seed)
-    seen: set[bytes] = set()
-    episodes = 0
+class Collector:
+    """Keeps the distinct valid assemblies of finished rounds, up to `count`, and writes each (verified)
+    under `out` when given."""
+
+    def __init__(self, policy: Policy, *, count: int, batch: int, seed: int, out: Path | None,
+                 picture: PictureWriter | None, progress: bool):
+        self.policy, self.count, self.batch, self.seed, self.out, self.picture = policy, count, batch, seed, out, picture
+        self.seen: set[bytes] = set()
+        self.episodes = 0
+        task = policy.task
+        self.bar = tqdm(total=count, desc=f"generate {task.shape_name} K={task.pieces}", unit="assembly",
+                        disable=None if progress else True)
+
+    @property
+    def done(self) -> bool:
+        return len(self.seen) >= self.count
+
+    def take(self, episodes: list[Episode], batch_seconds: float) -> None:
+        task = self.policy.task
+        self.episodes += len(episodes)
+        for episode in episodes:
+            if not episode.success or self.done:
+                continue
+            labels = final_labels(task, episode.final)
+            key = assembly_key(labels)
+            if key in self.seen:
+                continue
+            self.seen.add(key)
+            self.bar.update(1)
+            if self.out is not None:
+                write_assembly(self.out / f"assembly_{len(self.seen):03d}", task.topology.to_grid(labels),
+                               removal=task.removal, shape=task.shape_name,
+                               method={"name": "rl-lock", "checkpoint": self.policy.source, "step": self.policy.step,
+                                       "batch": self.batch, **asdict(self.policy.mcts)},
+                               seed=self.seed, timings={"batch_seconds": round(batch_seconds, 3)},
+                               picture=self.picture)
+
+    def result(self, seconds: float) -> GenerateResult:
+        self.bar.close()
+        valid = len(self.seen)
+        return GenerateResult(valid, self.episodes, seconds, seconds / valid if valid else None)
+
+
+def generate(policy: Policy, *, count: int, batch: int, time_limit: float, seed: int, out: Path | None = None,
+             picture: PictureWriter | None = None, progress: bool = True) -> GenerateResult:
+    """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
+    seconds (a round that has started finishes), in this process."""
     start = time.perf_counter()
-    with tqdm(total=count, desc=f"generate {task.shape_name} K={task.pieces}", unit="assembly",
-              disable=None if progress else True) as bar:
-        round_ = 0
-        while len(seen) < count and time.perf_counter() - start < time_limit:
-            key, sub = jax.random.split(key)
-            t0 = time.perf_counter()
-            results = play(searcher, policy.params, task, sub, batch=batch, seed=seed * 100_003 + round_,
-                           canvas=policy.net.canvas)
-            round_ += 1
-            episodes += len(results)
-            for episode in results:
-                if not episode.success or len(seen) >= count:
-                    continue
-                labels = final_labels(task, episode.final)
-                key_bytes = assembly_key(labels)
-                if key_bytes in seen:
-                    continue
-                seen.add(key_bytes)
-                bar.update(1)
-                if out is not None:
-                    write_assembly(out / f"assembly_{len(seen):03d}", task.topology.to_grid(labels),
-                                   removal=task.removal, shape=task.shape_name,
-                                   method={"name": "rl-lock", "checkpoint": policy.source, "step": policy.step,
-                                           "batch": batch, **asdict(policy.mcts)},
-                                   seed=seed, timings={"batch_seconds": round(time.perf_counter() - t0, 3)})
-    seconds = time.perf_counter() - start
-    return GenerateResult(len(seen), episodes, seconds, seconds / len(seen) if seen else None)
+    searcher = searcher_for(policy, batch)
+    collector = Collector(policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress)
+    round_ = 0
+    while not collector.done and time.perf_counter() - start < time_limit:
+        t0 = time.perf_counter()
+        collector.take(play_round(searcher, policy, seed, round_), time.perf_counter() - t0)
+        round_ += 1
+    return collector.result(time.perf_counter() - start)

@@ -15,6 +15,7 @@ untrained network then tells a live child from a dead end one level earlier.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import jax
@@ -24,8 +25,23 @@ import numpy as np
 from jax.experimental import io_callback
 
 from rllock.config import MCTSConfig
-from rllock.env import State, Task, apply_chunk, candidates, compact_dtypes, initial_state, is_solved
+from rllock.env import State, Task, apply_chunk, candidates_many, compact_dtypes, initial_state, is_solved
 from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
+
+
+@dataclass
+class TimeSplit:
+    """Where search time goes: the compiled sampler, the rest of the host callbacks (applying chunks,
+    encoding planes), and everything else inside the jitted search (the network and mctx's tree)."""
+
+    sampling: float = 0.0
+    host: float = 0.0
+    network: float = 0.0
+
+    def add(self, other: TimeSplit) -> None:
+        self.sampling += other.sampling
+        self.host += other.host
+        self.network += other.network
 
 
 class NodeStore:
@@ -40,26 +56,42 @@ class NodeStore:
         self.states: list[State] = []
         self.cands: list[np.ndarray] = []
         self.children: dict[tuple[int, int], int] = {}
+        self.times = TimeSplit()
+
+    def add_many(self, states: list[State]) -> list[int]:
+        """Store `states` as nodes, expanding the unsolved ones in one compiled call; their numbers."""
+        seeds = self.rng.integers(1 << 31, size=len(states))
+        cands = [np.zeros((0, self.task.piece_size), np.int32)] * len(states)
+        live = [i for i, s in enumerate(states) if not is_solved(self.task, s)]
+        if live:
+            start = time.perf_counter()
+            found, _ = candidates_many(self.task, [states[i] for i in live], seeds[live],
+                                       num_samples=self.config.raw_samples, max_candidates=self.config.candidates)
+            self.times.sampling += time.perf_counter() - start
+            for i, c in zip(live, found):
+                cands[i] = c
+        first = len(self.states)
+        self.states.extend(states)
+        self.cands.extend(cands)
+        return list(range(first, len(self.states)))
 
     def add(self, state: State) -> int:
-        if is_solved(self.task, state):
-            cands = np.zeros((0, self.task.piece_size), np.int32)
-        else:
-            cands = candidates(self.task, state, seed=int(self.rng.integers(1 << 31)),
-                               num_samples=self.config.raw_samples, max_candidates=self.config.candidates)
-        self.states.append(state)
-        self.cands.append(cands)
-        return len(self.states) - 1
+        return self.add_many([state])[0]
 
     def terminal(self, node: int) -> bool:
         return len(self.cands[node]) == 0
 
     def child(self, node: int, action: int) -> int:
         """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
-        key = (node, action)
-        if key not in self.children:
-            self.children[key] = self.add(apply_chunk(self.states[node], self.cands[node][action]))
-        return self.children[key]
+        return self.children_of([(node, action)])[0]
+
+    def children_of(self, pairs: list[tuple[int, int]]) -> list[int]:
+        """The nodes reached by (node, candidate action) pairs, expanding the new ones together."""
+        new = list(dict.fromkeys(p for p in pairs if p not in self.children))
+        if new:
+            kids = self.add_many([apply_chunk(self.states[n], self.cands[n][a]) for n, a in new])
+            self.children.update(zip(new, kids))
+        return [self.children[p] for p in pairs]
 
     def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(planes [B, C, C, C, P], candidate chunks as canvas indices [B, M, n], valid [B, M])."""
@@ -75,19 +107,26 @@ class NodeStore:
         return encode_batch(self.task, labels, placed, self.canvas), chunks, valid
 
     def expand(self, nodes: np.ndarray, actions: np.ndarray):
-        kids = np.empty(len(nodes), np.int32)
+        """One simulation's expansion for every row: (child nodes, reward, discount, value cap, and the
+        children's features). A row below a terminal node stays where it is, with reward 0."""
+        start, sampled = time.perf_counter(), self.times.sampling
+        out = self._expand(nodes.tolist(), actions.tolist())
+        self.times.host += time.perf_counter() - start - (self.times.sampling - sampled)
+        return out
+
+    def _expand(self, nodes: list[int], actions: list[int]):
+        moves = [r for r, (n, a) in enumerate(zip(nodes, actions)) if not self.terminal(n) and a < len(self.cands[n])]
+        kids = np.array(nodes, np.int32)
+        kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
         reward = np.zeros(len(nodes), np.float32)
         discount = np.zeros(len(nodes), np.float32)
         cap = np.zeros(len(nodes), np.float32)
-        for row, (node, action) in enumerate(zip(nodes.tolist(), actions.tolist())):
-            if self.terminal(node) or action >= len(self.cands[node]):
-                kids[row] = node
-                continue
-            kid = self.child(node, action)
-            kids[row] = kid
-            reward[row] = 1.0 / self.task.pieces
-            discount[row] = 0.0 if self.terminal(kid) else 1.0
-            cap[row] = (self.task.pieces - 1 - self.states[kid].placed) / self.task.pieces
+        k = self.task.pieces
+        for r in moves:
+            kid = int(kids[r])
+            reward[r] = 1.0 / k
+            discount[r] = 0.0 if self.terminal(kid) else 1.0
+            cap[r] = (k - 1 - self.states[kid].placed) / k
         planes, chunks, valid = self.features(kids)
         return kids, reward, discount, cap, planes, chunks, valid
 
@@ -100,13 +139,18 @@ def bounded_value(value: jax.Array, reward: jax.Array, discount: jax.Array, cap:
 
 
 class Searcher:
-    """A compiled batched search for one task shape (canvas, M_c, n); swap `store` between batches."""
+    """A compiled batched search for one task shape (the network's canvas, M_c, n); swap `store`
+    between batches."""
 
-    def __init__(self, net: PolicyValueNet, config: MCTSConfig, canvas: int, piece_size: int, batch: int):
+    def __init__(self, net: PolicyValueNet, config: MCTSConfig, piece_size: int, batch: int):
+        if net.config.canvas is None:
+            raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
         self.net = net
         self.config = config
+        self.canvas = net.config.canvas
+        self.batch = batch
         self.store: NodeStore | None = None
-        c, m, n = canvas, config.candidates, piece_size
+        c, m, n = self.canvas, config.candidates, piece_size
         shapes = (
             jax.ShapeDtypeStruct((batch,), jnp.int32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
@@ -148,11 +192,14 @@ class Searcher:
     def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
         """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
         self.store = store
+        start, before = time.perf_counter(), store.times.sampling + store.times.host
         planes, chunks, valid = store.features(roots)
         # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
         valid[~valid.any(axis=1), 0] = True
         action, weights, value = self._search(params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid)
-        return np.asarray(action), np.asarray(weights), np.asarray(value)
+        action, weights, value = np.asarray(action), np.asarray(weights), np.asarray(value)
+        store.times.network += time.perf_counter() - start - (store.times.sampling + store.times.host - before)
+        return action, weights, value
 
 
 @dataclass(frozen=True)
@@ -169,20 +216,25 @@ class Episode:
     final: State  # the last state reached
 
 
-def play(searcher: Searcher, params, task: Task, key: jax.Array, *, batch: int, seed: int,
-         canvas: int) -> list[Episode]:
-    """`batch` episodes in lockstep from the empty state; each decision takes the search's action."""
-    store = NodeStore(task, searcher.config, canvas, seed)
-    roots = np.array([store.add(initial_state(task)) for _ in range(batch)], np.int32)
+def play(searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int,
+         times: TimeSplit | None = None) -> list[Episode]:
+    """`searcher.batch` episodes in lockstep from the empty state; each decision takes the search's
+    action. `times`, when given, accumulates where the time went."""
+    batch = searcher.batch
+    store = NodeStore(task, searcher.config, searcher.canvas, seed)
+    roots = np.array(store.add_many([initial_state(task) for _ in range(batch)]), np.int32)
     trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
     active = np.array([not store.terminal(r) for r in roots])
     while active.any():
         key, sub = jax.random.split(key)
         actions, weights, _ = searcher.search(params, sub, store, roots)
-        for b in np.flatnonzero(active):
+        rows = np.flatnonzero(active)
+        for b in rows:
             trace[b].append((int(roots[b]), weights[b]))
-            roots[b] = store.child(int(roots[b]), int(actions[b]))
-            active[b] = not store.terminal(int(roots[b]))
+        roots[rows] = store.children_of([(int(roots[b]), int(actions[b])) for b in rows])
+        active[rows] = [not store.terminal(int(roots[b])) for b in rows]
+    if times is not None:
+        times.add(store.times)
     return [_episode(task, store, trace[b], int(roots[b]), searcher.config.candidates) for b in range(batch)]
 
 

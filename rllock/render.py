@@ -190,7 +190,7 @@ def _label(ax: Axes3D, at: np.ndarray, text: str, key: bool) -> None:
 
 
 def write_picture(labels: np.ndarray, verdict: Verdict, out_dir: Path) -> None:
-    """Assembly writer hook (rllock.assembly.register_writer): assembly.png next to assembly.json."""
+    """The picture writer `rllock.assembly.write_assembly` takes: assembly.png next to assembly.json."""
     draw_png(labels, Path(out_dir) / "assembly.png", verdict.removal)
 
 

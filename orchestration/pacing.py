@@ -1,0 +1,95 @@
+"""Pure pacing rules of the actor-learner loop: no Ray, no clocks of their own (times are passed in),
+so each rule is unit-tested in milliseconds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rllock.config import TrainConfig
+
+RESERVE_S = 20.0
+"""Seconds of the budget kept for the last checkpoint and shutting Ray down."""
+REPORT_EVERY_S = 30.0
+
+
+@dataclass(frozen=True)
+class Pacing:
+    warmup: int
+    """Transitions in the buffer before the first step."""
+    batch_size: int
+    replay_ratio: float
+    max_policy_lag: int
+    max_learner_steps: int | None
+
+    @staticmethod
+    def of(config: TrainConfig) -> Pacing:
+        return Pacing(config.warmup, config.learner.batch_size, config.replay_ratio, config.max_policy_lag,
+                      config.max_learner_steps)
+
+    def can_learn(self, *, step: int, transitions: int, version: int, oldest_version: int) -> bool:
+        """Whether the learner may take step `step + 1` now: enough data, under the replay ratio, and
+        no batch in flight is `max_policy_lag` versions behind."""
+        return (not self.reached_max(step)
+                and transitions >= max(self.warmup, 1)
+                and (step + 1) * self.batch_size <= self.replay_ratio * transitions
+                and version - oldest_version < self.max_policy_lag)
+
+    def reached_max(self, step: int) -> bool:
+        return self.max_learner_steps is not None and step >= self.max_learner_steps
+
+
+@dataclass
+class Schedule:
+    """When periodic work is due (monotonic seconds). The first checkpoint is due as soon as there is a
+    learner step, so a killed run loses little; later ones every `checkpoint_s`."""
+
+    deadline: float
+    checkpoint_s: float
+    validate_s: float
+    next_validate: float
+    next_report: float
+    next_checkpoint: float | None = None  # None: at the first learner step
+
+    @staticmethod
+    def start(now: float, config: TrainConfig) -> Schedule:
+        return Schedule(deadline=now + 60 * config.minutes - RESERVE_S, checkpoint_s=60 * config.checkpoint_minutes,
+                        validate_s=60 * config.validate_minutes, next_validate=now + 60 * config.validate_minutes,
+                        next_report=now + REPORT_EVERY_S)
+
+    def over(self, now: float) -> bool:
+        return now >= self.deadline
+
+    def checkpoint_due(self, now: float, step: int) -> bool:
+        if step == 0:
+            return False
+        return self.next_checkpoint is None or now >= self.next_checkpoint
+
+    def checkpointed(self, now: float) -> None:
+        self.next_checkpoint = now + self.checkpoint_s
+
+    def validation_due(self, now: float) -> bool:
+        return now >= self.next_validate
+
+    def validated(self, now: float) -> None:
+        self.next_validate = now + self.validate_s
+
+    def report_due(self, now: float) -> bool:
+        if now < self.next_report:
+            return False
+        self.next_report = now + REPORT_EVERY_S
+        return True
+
+    def fits(self, now: float, seconds: float | None) -> bool:
+        """Whether work expected to take `seconds` (None: unknown) ends before the deadline."""
+        return seconds is not None and now + seconds <= self.deadline
+
+
+def validation_estimate(batch_seconds: float | None, batch_episodes: int, episodes: int,
+                        last_validation_s: float | None) -> float | None:
+    """Expected seconds of a validation of `episodes` lockstep episodes: the last one's time when there
+    was one, else scaled from a self-play batch (lockstep cost grows about linearly with the batch)."""
+    if last_validation_s is not None:
+        return last_validation_s
+    if batch_seconds is None:
+        return None
+    return batch_seconds * episodes / max(batch_episodes, 1)

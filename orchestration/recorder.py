@@ -1,0 +1,97 @@
+"""What a training run leaves on disk: TensorBoard events, orbax checkpoints (latest and best), and the
+best validation assembly with its picture."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tensorboardX import SummaryWriter
+
+from rllock import checkpoint as ckpt
+from rllock.assembly import write_assembly
+from rllock.config import TrainConfig, to_json
+from rllock.env import Task
+from rllock.render import write_picture
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Counters:
+    """Run totals that survive a resume (saved in every checkpoint's metadata)."""
+
+    episodes: int = 0
+    successes: int = 0
+    simulations: int = 0
+    transitions: int = 0
+    seconds: float = 0.0
+    best_rate: float = -1.0
+    best_return: float = -1.0  # mean return of the best validation, which breaks ties in success rate
+    version: int = 0
+
+    def add(self, stats) -> None:
+        """Count one finished self-play batch (`actors.selfplay.PlayStats`)."""
+        self.episodes += stats.episodes
+        self.successes += stats.successes
+        self.simulations += stats.simulations
+
+
+def validation_rank(score: dict | None) -> tuple[float, float]:
+    """How validations compare: success rate first, then the mean return (how far the episodes got),
+    so that a hard task where no validation succeeds yet still keeps its most promising checkpoint."""
+    score = score or {}
+    return float(score.get("success_rate", -1.0)), float(score.get("mean_return", -1.0))
+
+
+def best_rank(logdir: Path) -> tuple[float, float]:
+    """The validation rank of the run's best checkpoint ((-1, -1) when there is none yet)."""
+    steps = ckpt.saved_steps(logdir / "best")
+    if not steps:
+        return -1.0, -1.0
+    return validation_rank(ckpt.read_meta(logdir / "best" / str(steps[-1])).get("validation"))
+
+
+class Recorder:
+    def __init__(self, logdir: Path, config: TrainConfig, task: Task, step: int, resume: bool):
+        self.logdir, self.config, self.task = logdir, config, task
+        logdir.mkdir(parents=True, exist_ok=True)
+        # purge_step drops events logged after the checkpoint we resume from, so the curves do not fork.
+        self.writer = SummaryWriter(str(logdir), purge_step=step if resume else None)
+        self.writer.add_text("config", "```\n" + json.dumps(to_json(config), indent=1) + "\n```", step)
+        self.latest = ckpt.manager(logdir / "checkpoints", keep=3)
+        self.best = ckpt.manager(logdir / "best", keep=1)
+
+    def scalars(self, values: dict[str, float], step: int) -> None:
+        for tag, value in values.items():
+            self.writer.add_scalar(tag, value, step)
+
+    def checkpoint(self, step: int, state, validation: dict | None, counters: Counters) -> None:
+        ckpt.save(self.latest, step, state, ckpt.meta(to_json(self.config), self.task, step, validation,
+                                                       asdict(counters)))
+
+    def best_checkpoint(self, step: int, state, validation: dict, counters: Counters,
+                        grid: np.ndarray | None) -> None:
+        ckpt.save(self.best, step, state, ckpt.meta(to_json(self.config), self.task, step, validation,
+                                                     asdict(counters)))
+        if grid is not None:
+            self._best_assembly(grid, step)
+
+    def _best_assembly(self, grid: np.ndarray, step: int) -> None:
+        folder = self.logdir / "best_assembly"
+        png = folder / "assembly.png"
+        png.unlink(missing_ok=True)  # never leave the previous best's picture beside the new assembly
+        write_assembly(folder, grid, removal=self.task.removal, shape=self.task.shape_name,
+                       method={"name": "rl-lock validation", "step": step}, seed=self.config.seed, timings={},
+                       picture=write_picture)
+        self.writer.add_image("best/assembly", np.asarray(Image.open(png).convert("RGB")), step,
+                              dataformats="HWC")
+
+    def close(self) -> None:
+        self.writer.close()
+        self.latest.close()
+        self.best.close()
