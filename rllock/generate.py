@@ -53,7 +53,7 @@ def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
         ckpt.check_same_task(meta["task"], expect, step_dir)
     task = ckpt.task_from_identity(meta["task"])
     net, mcts = _configs(meta)
-    template = {"params": jax.eval_shape(init_params, net, jax.random.PRNGKey(0))}
+    template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
     params = ckpt.restore_like(step_dir, template, partial=True)["params"]
     return Policy(task, net, mcts, params, str(step_dir), int(meta["step"]))
 

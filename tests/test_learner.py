@@ -14,7 +14,8 @@ from rllock.errors import RLLockError
 from rllock.generate import load_policy
 from rllock.mcts import MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
-from rllock.train import TrainConfig, checkpoint_meta, validation_rank
+from orchestration.recorder import validation_rank
+from rllock.config import TrainConfig, to_json
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -23,9 +24,9 @@ MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8
 @pytest.fixture(scope="module")
 def task_and_episodes():
     task = make_task("box:4x4x2", 4)
-    searcher = Searcher(PolicyValueNet(NET), MCTS, 4, task.piece_size, batch=8)
+    searcher = Searcher(PolicyValueNet(NET), MCTS, task.piece_size, batch=8)
     learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(0))
-    return task, play(searcher, learner.params, task, jax.random.PRNGKey(2), batch=8, seed=1, canvas=4)
+    return task, play(searcher, learner.params, task, jax.random.PRNGKey(2), seed=1)
 
 
 def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
@@ -59,10 +60,9 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
 
 
 def _save(tmp_path, task, learner):
-    config = TrainConfig(shape="box:4x4x2", pieces=4, canvas=4, features=NET.features,
-                         simulations=MCTS.simulations, max_considered=4, raw_samples=256, candidates=8)
+    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
     mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
-    ckpt.save(mngr, learner.step, learner.state(), checkpoint_meta(config, task, learner.step, None))
+    ckpt.save(mngr, learner.step, learner.state(), ckpt.meta(to_json(config), task, learner.step, None, {}))
     mngr.close()
     return tmp_path / "run"
 
@@ -75,7 +75,7 @@ def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episo
     learner.update(buf.sample(16, seed=1))
     run = _save(tmp_path, task, learner)
     policy = load_policy(run)
-    assert policy.step == 1 and policy.task.pieces == 4
+    assert policy.step == 1 and policy.task.pieces == 4 and policy.net == NET and policy.mcts == MCTS
     assert np.array_equal(policy.task.topology.grid, task.topology.grid)
     for a, b in zip(jax.tree_util.tree_leaves(policy.params), jax.tree_util.tree_leaves(learner.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

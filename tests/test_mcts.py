@@ -45,9 +45,9 @@ def test_child_values_are_clipped_to_what_is_known():
 def episodes():
     task = make_task("box:4x4x2", 3)
     config = NetConfig(canvas=4, features=(4, 8))
-    searcher = Searcher(PolicyValueNet(config), SMALL, 4, task.piece_size, batch=6)
+    searcher = Searcher(PolicyValueNet(config), SMALL, task.piece_size, batch=6)
     params = init_params(config, jax.random.PRNGKey(0))
-    return task, play(searcher, params, task, jax.random.PRNGKey(1), batch=6, seed=3, canvas=4)
+    return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=3)
 
 
 def test_episode_records_are_consistent(episodes):

@@ -7,8 +7,10 @@ import pytest
 
 from rllock.env import make_task
 from rllock.errors import RLLockError
-from rllock.network import (MASKED_LOGIT, Conv3, NetConfig, PolicyValueNet, check_fits, chunk_logits, encode_batch,
-                            init_params)
+import flax.linen as nn
+
+from rllock.network import (MASKED_LOGIT, Conv3, NetConfig, PolicyValueNet, Upsample2, chunk_logits, encode_batch,
+                            fit_canvas, init_params)
 
 
 def test_shifted_convolution_equals_lax_conv():
@@ -55,7 +57,26 @@ def test_network_shapes_and_value_range():
 
 def test_shapes_that_do_not_fit_the_canvas_are_errors():
     with pytest.raises(RLLockError, match="does not fit"):
-        check_fits(make_task("cube6", 4), NetConfig(canvas=4))
+        fit_canvas(make_task("cube6", 4), NetConfig(canvas=4))
     with pytest.raises(RLLockError, match="multiple of 4"):
-        check_fits(make_task("cube3", 4), NetConfig(canvas=6))
-    check_fits(make_task("cube4", 4), NetConfig(canvas=4))
+        fit_canvas(make_task("cube3", 4), NetConfig(canvas=6))
+    assert fit_canvas(make_task("cube4", 4), NetConfig(canvas=8)).canvas == 8
+
+
+@pytest.mark.parametrize("shape,features,canvas", [("cube4", (16, 32, 64), 4), ("cube5", (16, 32, 64), 8),
+                                                   ("cube6", (16, 32, 64), 8), ("cube6", (8, 16), 6),
+                                                   ("box:7x3x2", (8,), 7)])
+def test_the_default_canvas_is_the_smallest_that_fits(shape, features, canvas):
+    assert fit_canvas(make_task(shape, 2), NetConfig(features=features)).canvas == canvas
+
+
+def test_upsampling_equals_flax_conv_transpose_with_the_same_parameters():
+    """Upsample2 replaces nn.ConvTranspose (2x2x2, stride 2) and must read its parameters unchanged,
+    so that checkpoints written with the old layer load and give the same outputs."""
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 2, 3, 4, 5))
+    reference = nn.ConvTranspose(6, (2, 2, 2), strides=(2, 2, 2))
+    shapes = reference.init(jax.random.PRNGKey(1), x)["params"]
+    keys = jax.random.split(jax.random.PRNGKey(2), 2)
+    params = {"params": {"kernel": jax.random.normal(keys[0], shapes["kernel"].shape),
+                         "bias": jax.random.normal(keys[1], shapes["bias"].shape)}}
+    np.testing.assert_allclose(Upsample2(6).apply(params, x), reference.apply(params, x), atol=1e-5)

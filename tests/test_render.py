@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rllock import assembly as assembly_module
 from rllock.assembly import write_assembly
 from rllock.errors import RLLockError
 from rllock.reference import DIRECTION_NAMES, DIRECTIONS
@@ -59,12 +58,13 @@ def test_png_shows_every_piece(tmp_path):
     assert _colourful_pixels(image) > 0.1 * 900 * 450
 
 
-def test_assembly_writer_hook_puts_a_picture_next_to_the_assembly(tmp_path, labels, monkeypatch):
-    monkeypatch.setattr(assembly_module, "_extra_writers", [])
-    assembly_module.register_writer(write_picture)
-    write_assembly(tmp_path / "out", labels, removal="straight", shape="cube4", method={"name": "test"}, seed=0,
-                   timings={})
-    assert Image.open(tmp_path / "out" / "assembly.png").format == "PNG"
+def test_a_picture_writer_puts_a_picture_next_to_the_assembly(tmp_path, labels):
+    write_assembly(tmp_path / "with", labels, removal="straight", shape="cube4", method={"name": "test"}, seed=0,
+                   timings={}, picture=write_picture)
+    assert Image.open(tmp_path / "with" / "assembly.png").format == "PNG"
+    write_assembly(tmp_path / "without", labels, removal="straight", shape="cube4", method={"name": "test"},
+                   seed=0, timings={})
+    assert not (tmp_path / "without" / "assembly.png").exists()
 
 
 def test_steps_follow_the_verified_moves(data):

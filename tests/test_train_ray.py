@@ -9,14 +9,17 @@ import pytest
 import ray
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from orchestration.train import train
+from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
 from rllock.errors import RLLockError
-from rllock.train import TrainConfig, train
 
 from conftest import run_cli
 
-TINY = dict(shape="box:4x4x2", pieces=3, canvas=4, features=(4, 8), simulations=8, max_considered=4,
-            raw_samples=256, candidates=8, episodes_per_batch=4, min_buffer=8, batch_size=16,
-            publish_every=5, max_policy_lag=2, validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1, actors=1)
+TINY = dict(shape="box:4x4x2", pieces=3, net=NetConfig(features=(4, 8)),
+            mcts=MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8),
+            selfplay=SelfPlayConfig(actors=1, episodes_per_batch=4), publish_every=5, max_policy_lag=2,
+            validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1)
+STEPS = 60
 
 
 @pytest.fixture(scope="module")
@@ -24,9 +27,9 @@ def run(tmp_path_factory):
     logdir = tmp_path_factory.mktemp("run")
     ray.init(num_cpus=2, include_dashboard=False)
     try:
-        # 1.5 minutes: the first self-play batch compiles the search, which takes most of a minute on a
-        # loaded 2-core machine.
-        result = train(TrainConfig(minutes=1.5, logdir=str(logdir), learning_rate=1e-3, **TINY))
+        # The run ends on its learner-step limit; the minutes are only a safety net.
+        result = train(TrainConfig(minutes=5, max_learner_steps=STEPS, logdir=str(logdir),
+                                   learner=LearnerConfig(learning_rate=1e-3, batch_size=16), **TINY))
     finally:
         ray.shutdown()
     return logdir, result
@@ -34,7 +37,7 @@ def run(tmp_path_factory):
 
 def test_training_writes_checkpoints_and_event_files(run):
     logdir, result = run
-    assert result["steps"] > 0 and result["episodes"] > 0
+    assert result["steps"] == STEPS and result["episodes"] > 0
     latest = sorted(int(p.name) for p in (logdir / "checkpoints").iterdir() if p.name.isdigit())
     best = [p for p in (logdir / "best").iterdir() if p.name.isdigit()]
     assert latest and latest[-1] == result["steps"] and len(best) == 1
