@@ -31,7 +31,7 @@ import numpy as np
 
 from rllock.errors import RLLockError
 from rllock.shapes import from_xfastest, to_xfastest, read_puz_labels, write_puz
-from rllock.verify import CHECKER_NAME, CHECKER_VERSION, Verdict, verify_labels
+from rllock.verifier import CHECKER_NAME, CHECKER_VERSION, Verdict, verify_labels
 
 FORMAT = "rllock-assembly"
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from rllock.env import State, Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
-from rllock.solve import SearchConfig, reach_depth, search
+from rllock.solver import SearchConfig, reach_depth, search
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ from rllock.config import TrainConfig, from_json
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
 from rllock.shapes import from_xfastest, to_xfastest
-from rllock.verify import CHECKER_VERSION
+from rllock.verifier import CHECKER_VERSION
 
 FORMAT = "rllock-checkpoint"
 META_VERSION = 2

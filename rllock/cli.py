@@ -54,7 +54,7 @@ def _fresh_out(path: str) -> Path:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from rllock.verify import verify_labels
+    from rllock.verifier import verify_labels
 
     labels, meta = read_assembly(args.file)
     verdict = verify_labels(labels, args.removal or meta.get("removal") or "straight")
@@ -76,7 +76,7 @@ def _picture():
 
 def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.env import make_task
-    from rllock.solve import SearchConfig, search
+    from rllock.solver import SearchConfig, search
 
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     config = SearchConfig()
@@ -124,7 +124,7 @@ def cmd_bench_checkers(args: argparse.Namespace) -> int:
 
 def cmd_bench_solve(args: argparse.Namespace) -> int:
     from rllock.bench import bench_solve_task, format_solve_table, parse_tasks
-    from rllock.solve import SearchConfig
+    from rllock.solver import SearchConfig
 
     tasks = parse_tasks(args.tasks)
     rows = []
@@ -192,7 +192,7 @@ def _expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
 
 def _load_for(args: argparse.Namespace):
     from rllock.checkpoint import find_step_dir, read_meta
-    from rllock.generate import load_policy
+    from rllock.inference import load_policy
 
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
@@ -213,7 +213,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
         result = generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
     else:
-        from rllock.generate import generate
+        from rllock.inference import generate
 
         result = generate(policy, **settings)
     task = policy.task
@@ -239,7 +239,7 @@ def learning_ratio(trained: float | None, untrained: float | None,
 
 
 def cmd_bench_learning(args: argparse.Namespace) -> int:
-    from rllock.generate import generate, untrained_like
+    from rllock.inference import generate, untrained_like
 
     trained = _load_for(args)
     rows = {}

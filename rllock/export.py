@@ -34,7 +34,7 @@ import numpy as np
 from rllock.errors import RLLockError
 from rllock.reference import DIRECTION_NAMES, DIRECTIONS
 from rllock.shapes import to_xfastest
-from rllock.verify import Verdict, validate_labels
+from rllock.verifier import Verdict, validate_labels
 
 MESH_FORMATS = ("obj", "stl")
 FORMATS = (*MESH_FORMATS, "xmpuzzle")

@@ -22,7 +22,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from PIL import Image
 
 from rllock.reference import DIRECTION_NAMES, DIRECTIONS
-from rllock.verify import Verdict, validate_labels
+from rllock.verifier import Verdict, validate_labels
 
 # Flat shading by face direction (+x, -x, +y, -y, +z, -z): enough to read the shape without a light model.
 _SHADE = (0.82, 0.62, 0.72, 0.9, 1.0, 0.55)

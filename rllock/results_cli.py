@@ -16,7 +16,7 @@ from rllock.assembly import read_assembly
 from rllock.errors import RLLockError
 from rllock.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
 from rllock.reference import REMOVAL_MODES
-from rllock.verify import Verdict, verify_labels
+from rllock.verifier import Verdict, verify_labels
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from rllock.meshes import piece_volume
 from rllock.reference import DIRECTION_NAMES, DIRECTIONS
 from rllock.results_cli import add_commands
 from rllock.shapes import from_xfastest, read_puz_labels
-from rllock.verify import verify_labels
+from rllock.verifier import verify_labels
 
 from conftest import run_cli
 
@@ -28,7 +28,7 @@ from conftest import run_cli
 @pytest.fixture(scope="module")
 def labels() -> np.ndarray:
     from rllock.env import make_task
-    from rllock.solve import search
+    from rllock.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 
@@ -104,7 +104,7 @@ def _solid(mesh: trimesh.Trimesh) -> m3.Manifold:
 
 def test_default_stl_export_is_watertight_where_voxels_of_a_piece_touch_only_along_an_edge(tmp_path):
     from rllock.env import make_task
-    from rllock.solve import search
+    from rllock.solver import search
 
     # The first seed whose 4^3 K=7 assembly has edge-only contacts in at least three pieces; with gap 0,
     # that assembly (seed 4) welds to two open STL pieces of seven.

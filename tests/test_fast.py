@@ -123,3 +123,58 @@ def test_first_voxel_of_a_piece_touches_the_previous_piece():
     for _ in range(200):
         chunk = ref.sample_chunk(labels, 4, task.piece_size, rng)
         assert any(labels.get(ref.shift(chunk[0], d)) == 3 for d in ref.DIRECTIONS)
+
+
+def test_batched_candidates_equal_one_call_per_node():
+    """One compiled call for many nodes (threads over nodes) gives each node exactly what a call of its
+    own gives with the same seed."""
+    from rllock.env import candidates_many
+
+    task = make_task("cube5", 13)
+    states = list(random_valid_states(task, np.random.default_rng(7), 2))[:9]
+    seeds = np.arange(100, 100 + len(states))
+    batched, drawn = candidates_many(task, states, seeds, num_samples=512, max_candidates=16)
+    for state, seed, got in zip(states, seeds, batched):
+        np.testing.assert_array_equal(got, candidates(task, state, seed=int(seed), num_samples=512,
+                                                      max_candidates=16))
+    assert drawn > 0 and any(len(b) == 16 for b in batched)
+
+
+def test_early_stopping_draws_candidates_like_the_full_sample():
+    """Stopping at M_c distinct accepted chunks must give the same candidate sets, in distribution, as
+    drawing M_c distinct chunks in a random order from the accepted chunks of all M_s samples (the
+    reference below, with no early stop). Two-sample chi-square over the sets' histogram."""
+    task = make_task("box:3x2x1", 2)  # n = 3: a handful of chunks, drawn with unequal frequencies
+    state = initial_state(task)
+    m_s, m_c, trials = 8, 2, 3000
+    rng = np.random.default_rng(0)
+
+    def reference(seed: int) -> tuple:
+        accepted = sample_accepted(task, state, seed=seed, num_samples=m_s)
+        keys = []
+        for chunk in accepted[rng.permutation(len(accepted))]:
+            key = tuple(sorted(int(v) for v in chunk))
+            if key not in keys:
+                keys.append(key)
+        return tuple(sorted(keys[:m_c]))
+
+    def early(seed: int) -> tuple:
+        got = candidates(task, state, seed=seed, num_samples=m_s, max_candidates=m_c)
+        return tuple(sorted(tuple(int(v) for v in c) for c in got))
+
+    def histogram(draw, offset: int) -> dict:
+        counts: dict = {}
+        for t in range(trials):
+            key = draw(offset + t)
+            counts[key] = counts.get(key, 0) + 1
+        return counts
+
+    a, b = histogram(early, 0), histogram(reference, 10**6)
+    keys = [k for k in set(a) | set(b) if a.get(k, 0) + b.get(k, 0) >= 10]  # pooled: rare sets tested together
+    assert len(keys) > 5
+    x = np.array([a.get(k, 0) for k in keys] + [trials - sum(a.get(k, 0) for k in keys)], float)
+    y = np.array([b.get(k, 0) for k in keys] + [trials - sum(b.get(k, 0) for k in keys)], float)
+    mask = x + y > 0
+    chi2 = (((x - y) ** 2)[mask] / (x + y)[mask]).sum()
+    dof = mask.sum() - 1
+    assert chi2 < dof + 4 * np.sqrt(2 * dof) + 10  # far beyond the 99.9% quantile under the null

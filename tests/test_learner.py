@@ -11,7 +11,7 @@ from learner.replay import ReplayBuffer
 from rllock import checkpoint as ckpt
 from rllock.env import make_task
 from rllock.errors import RLLockError
-from rllock.generate import load_policy
+from rllock.inference import load_policy
 from rllock.mcts import MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
 from orchestration.recorder import validation_rank

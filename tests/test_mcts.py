@@ -7,7 +7,7 @@ import pytest
 from rllock.env import final_labels, initial_state, make_task
 from rllock.mcts import MCTSConfig, NodeStore, Searcher, bounded_value, play
 from rllock.network import NetConfig, PolicyValueNet, init_params
-from rllock.verify import verify_labels
+from rllock.verifier import verify_labels
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
 

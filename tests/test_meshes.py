@@ -140,7 +140,7 @@ def test_piece_volume_counts_cores_slabs_prisms_and_corners():
 @pytest.fixture(scope="module")
 def assembly() -> np.ndarray:
     from rllock.env import make_task
-    from rllock.solve import search
+    from rllock.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 

@@ -16,7 +16,7 @@ from rllock.reference import DIRECTION_NAMES, DIRECTIONS
 from rllock.render import disassembly_steps, draw_png, piece_colors, write_gif, write_html, write_picture
 from rllock.results_cli import add_commands
 from rllock.shapes import read_puz_labels
-from rllock.verify import verify_labels
+from rllock.verifier import verify_labels
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -24,7 +24,7 @@ CHROMIUM = Path("/usr/bin/chromium")
 @pytest.fixture(scope="module")
 def labels() -> np.ndarray:
     from rllock.env import make_task
-    from rllock.solve import search
+    from rllock.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 

@@ -8,8 +8,8 @@ import pytest
 from rllock.assembly import read_assembly, write_assembly
 from rllock.env import make_task
 from rllock.shapes import read_puz_labels
-from rllock.solve import luby, search
-from rllock.verify import verify_labels
+from rllock.solver import luby, search
+from rllock.verifier import verify_labels
 
 from conftest import run_cli
 

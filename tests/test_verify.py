@@ -8,8 +8,8 @@ import pytest
 from rllock import reference as ref
 from rllock.env import make_task
 from rllock.shapes import read_puz_labels, write_puz
-from rllock.solve import search
-from rllock.verify import verify_labels
+from rllock.solver import search
+from rllock.verifier import verify_labels
 
 from conftest import run_cli
 

@@ -13,7 +13,7 @@ from rllock import reference as ref
 from rllock.errors import RLLockError
 
 CHECKER_VERSION = "1"
-CHECKER_NAME = "rllock.verify (reference checkers, docs/checkers.md)"
+CHECKER_NAME = "rllock.verifier (reference checkers, docs/checkers.md)"
 
 
 @dataclass(frozen=True)

@@ -129,3 +129,19 @@ def reach_depth(task: Task, placed: int, *, seed: int, time_limit: float,
         if state is not None:
             return state
     return None
+
+
+def solve(task: Task, *, count: int = 1, time_limit: float = 60.0, seed: int = 0,
+          config: SearchConfig = SearchConfig()) -> list[np.ndarray]:
+    """Up to `count` distinct assemblies of `task` found by the search within `time_limit` seconds, as
+    label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier."""
+    from rllock.verifier import verify_labels
+
+    found = []
+    for f in search(task, seed=seed, time_limit=time_limit, config=config):
+        if not verify_labels(f.labels, task.removal).valid:
+            raise AssertionError("the search returned an assembly the verifier rejects")
+        found.append(f.labels)
+        if len(found) >= count:
+            break
+    return found
