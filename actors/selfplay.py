@@ -65,8 +65,9 @@ class PlayStats:
     times: TimeSplit
 
 
-def evaluate(searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int,
-             times: TimeSplit | None = None) -> tuple[list[Episode], float]:
+def evaluate(
+    searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int, times: TimeSplit | None = None
+) -> tuple[list[Episode], float]:
     """One lockstep batch of episodes and the seconds it took."""
     start = time.perf_counter()
     episodes = play(searcher, params, task, key, seed=seed, times=times)
@@ -93,13 +94,22 @@ class SelfPlayWorker:
         assert self.params is not None, "set_weights first"
         self.key, sub = jax.random.split(self.key)
         times = TimeSplit()
-        episodes, seconds = evaluate(self.searcher, self.params, self.task, sub,
-                                     seed=self.seed * 1_000_003 + self.batches, times=times)
+        episodes, seconds = evaluate(
+            self.searcher, self.params, self.task, sub, seed=self.seed * 1_000_003 + self.batches, times=times
+        )
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
-        stats = PlayStats(len(episodes), sum(e.success for e in episodes), decisions,
-                          decisions * self.mcts.simulations, self.version, os.getpid(), peak_rss_mb(), seconds,
-                          times)
+        stats = PlayStats(
+            len(episodes),
+            sum(e.success for e in episodes),
+            decisions,
+            decisions * self.mcts.simulations,
+            self.version,
+            os.getpid(),
+            peak_rss_mb(),
+            seconds,
+            times,
+        )
         return episodes, stats
 
 

@@ -1,7 +1,8 @@
 """Cluster entry point: `rllock train` joined to the running Ray cluster.
 
     ray submit cluster/cluster.yaml cluster/train_job.py -- --shape cube6 --pieces 25
-    ray job submit --address http://HEAD:8265 --working-dir . -- python cluster/train_job.py --shape cube6 --pieces 25
+    ray job submit --address http://HEAD:8265 --working-dir . -- \
+        python cluster/train_job.py --shape cube6 --pieces 25
 
 Arguments are those of `rllock train`; without `--address` it joins the cluster this process runs in
 (`auto`: the node's own Ray, as both `ray submit` and Ray Jobs provide).

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from rllock.env import Task
 from rllock.config import LearnerConfig
+from rllock.env import Task
 from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
 from rllock.topology import symmetries
 
@@ -39,7 +39,11 @@ def augment(sample: dict[str, np.ndarray], perms: np.ndarray, seed: int) -> dict
     labels = np.empty_like(sample["labels"])
     np.put_along_axis(labels, rows, sample["labels"], axis=1)  # labels'[p(v)] = labels[v]
     chunks = np.take_along_axis(rows, sample["chunks"].reshape(len(rows), -1).astype(np.int64), axis=1)
-    return {**sample, "labels": labels, "chunks": chunks.reshape(sample["chunks"].shape).astype(sample["chunks"].dtype)}
+    return {
+        **sample,
+        "labels": labels,
+        "chunks": chunks.reshape(sample["chunks"].shape).astype(sample["chunks"].dtype),
+    }
 
 
 class Learner:
@@ -70,8 +74,12 @@ class Learner:
 
     def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
         self.params, self.opt_state, policy, value_loss = update_step(
-            self.params, self.opt_state, self.prepare(sample, self.next_seed()), net=self.net,
-            optimizer=self.optimizer)
+            self.params,
+            self.opt_state,
+            self.prepare(sample, self.next_seed()),
+            net=self.net,
+            optimizer=self.optimizer,
+        )
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
 
@@ -83,8 +91,12 @@ class Learner:
 
     def state(self) -> dict:
         """Everything a resume needs, as one pytree."""
-        return {"params": self.params, "opt_state": self.opt_state, "step": np.asarray(self.step, dtype=np.int64),
-                "key": np.asarray(self.key)}
+        return {
+            "params": self.params,
+            "opt_state": self.opt_state,
+            "step": np.asarray(self.step, dtype=np.int64),
+            "key": np.asarray(self.key),
+        }
 
     def load_state(self, state: dict) -> None:
         self.params = state["params"]

@@ -15,8 +15,15 @@ from rllock.mcts import Episode
 class ReplayBuffer:
     """A ring buffer: the oldest transitions are overwritten once `capacity` is reached."""
 
-    def __init__(self, capacity: int, n_voxels: int, candidates: int, piece_size: int,
-                 label_dtype: type = np.int8, voxel_dtype: type = np.int16):
+    def __init__(
+        self,
+        capacity: int,
+        n_voxels: int,
+        candidates: int,
+        piece_size: int,
+        label_dtype: type = np.int8,
+        voxel_dtype: type = np.int16,
+    ):
         """Dtypes as `rllock.env.compact_dtypes(task)` gives them: int8 labels, int16 voxel numbers
         for K <= 127 and N <= 32767."""
         self.capacity = capacity
@@ -58,8 +65,14 @@ class ReplayBuffer:
         if len(wins):
             k = int(round(success_fraction * batch))
             idx[:k] = wins[rng.integers(0, len(wins), size=k)]
-        return {"labels": self.labels[idx], "placed": self.placed[idx], "chunks": self.chunks[idx],
-                "num_valid": self.num_valid[idx], "pi": self.pi[idx], "z": self.z[idx]}
+        return {
+            "labels": self.labels[idx],
+            "placed": self.placed[idx],
+            "chunks": self.chunks[idx],
+            "num_valid": self.num_valid[idx],
+            "pi": self.pi[idx],
+            "z": self.z[idx],
+        }
 
     def __len__(self) -> int:
         return self.size
@@ -69,8 +82,13 @@ class ReplayBuffer:
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""
         tmp = Path(path).with_suffix(".tmp.npz")
-        np.savez(tmp, size=self.size, cursor=self.cursor, added=self.added,
-                 **{name: getattr(self, name)[: self.size] for name in self._ARRAYS})
+        np.savez(
+            tmp,
+            size=self.size,
+            cursor=self.cursor,
+            added=self.added,
+            **{name: getattr(self, name)[: self.size] for name in self._ARRAYS},
+        )
         os.replace(tmp, path)
 
     def restore(self, path: str) -> int:
@@ -78,8 +96,10 @@ class ReplayBuffer:
         with np.load(path) as data:
             size = int(data["size"])
             if size > self.capacity:
-                raise RLLockError(f"replay snapshot {path} holds {size} transitions, more than --buffer-capacity "
-                                  f"{self.capacity}")
+                raise RLLockError(
+                    f"replay snapshot {path} holds {size} transitions, more than --buffer-capacity "
+                    f"{self.capacity}"
+                )
             for name in self._ARRAYS:
                 if name in data:  # snapshots from before a field existed leave it at its default
                     getattr(self, name)[:size] = data[name]
@@ -88,5 +108,10 @@ class ReplayBuffer:
         return size
 
     def stats(self) -> dict[str, float]:
-        return {"size": self.size, "added": self.added, "successes": int(self.success[: self.size].sum()),
-                "capacity": self.capacity, "peak_rss_mb": peak_rss_mb()}
+        return {
+            "size": self.size,
+            "added": self.added,
+            "successes": int(self.success[: self.size].sum()),
+            "capacity": self.capacity,
+            "peak_rss_mb": peak_rss_mb(),
+        }

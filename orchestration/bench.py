@@ -21,9 +21,12 @@ from rllock.network import init_params
 log = logging.getLogger(__name__)
 
 
-def _measure(task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float) -> dict:
-    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(10_000, task.size, mcts.candidates, task.piece_size,
-                                                         *compact_dtypes(task))
+def _measure(
+    task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float
+) -> dict:
+    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
+        10_000, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task)
+    )
     pool = ActorPool(TaskSpec.of(task), net, mcts, layout, 100, buffer)
     weights = [params_ref]
     pool.submit_all(weights, 0)  # compile and warm up outside the timed window
@@ -47,17 +50,29 @@ def _measure(task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, param
     pool.shutdown()
     ray.kill(buffer)
     sims = max(simulations, 1)
-    return {"actors": layout.actors, "mode": layout.mode, "episodes_per_batch": layout.episodes,
-            "threads_per_actor": layout.threads, "episodes": episodes, "decisions": decisions, "seconds": elapsed,
-            "episodes_per_sec": episodes / elapsed, "episodes_per_hour": 3600 * episodes / elapsed,
-            "simulations_per_sec": simulations / elapsed,
-            "ms_per_simulation": {"sampling": 1000 * times.sampling / sims, "network": 1000 * times.network / sims,
-                                  "host": 1000 * times.host / sims, "other": 1000 * max(
-                                      0.0, busy - times.sampling - times.network - times.host) / sims}}
+    return {
+        "actors": layout.actors,
+        "mode": layout.mode,
+        "episodes_per_batch": layout.episodes,
+        "threads_per_actor": layout.threads,
+        "episodes": episodes,
+        "decisions": decisions,
+        "seconds": elapsed,
+        "episodes_per_sec": episodes / elapsed,
+        "episodes_per_hour": 3600 * episodes / elapsed,
+        "simulations_per_sec": simulations / elapsed,
+        "ms_per_simulation": {
+            "sampling": 1000 * times.sampling / sims,
+            "network": 1000 * times.network / sims,
+            "host": 1000 * times.host / sims,
+            "other": 1000 * max(0.0, busy - times.sampling - times.network - times.host) / sims,
+        },
+    }
 
 
-def bench_selfplay(task: Task, net: NetConfig, mcts: MCTSConfig, selfplay: SelfPlayConfig, counts: list[int],
-                   seconds: float) -> list[dict]:
+def bench_selfplay(
+    task: Task, net: NetConfig, mcts: MCTSConfig, selfplay: SelfPlayConfig, counts: list[int], seconds: float
+) -> list[dict]:
     """One row per actor count; `net` has a concrete canvas. Ray's CPUs are all free (no learner)."""
     started = start_ray(None)
     try:
@@ -65,8 +80,12 @@ def bench_selfplay(task: Task, net: NetConfig, mcts: MCTSConfig, selfplay: SelfP
         resources = ray.cluster_resources()
         rows = []
         for n in counts:
-            layout = plan_layout(dataclasses.replace(selfplay, actors=n), cpus=resources.get("CPU", 1),
-                                 gpus=resources.get("GPU", 0), reserved_cpus=0)
+            layout = plan_layout(
+                dataclasses.replace(selfplay, actors=n),
+                cpus=resources.get("CPU", 1),
+                gpus=resources.get("GPU", 0),
+                reserved_cpus=0,
+            )
             rows.append(_measure(task, net, mcts, layout, params_ref, seconds))
             log.info("%d actor(s): %.3f episodes/s", n, rows[-1]["episodes_per_sec"])
         return rows

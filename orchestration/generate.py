@@ -1,6 +1,6 @@
 """`rllock generate --actors N [--address HOST:PORT]`: the inference protocol's rounds spread over N Ray
 actors, locally or on a cluster. The driver hands out rounds (the same rounds as in-process generation,
-see `rllock.generate`), deduplicates the finished ones, verifies and writes them. Each actor loads the
+see `rllock.inference`), deduplicates the finished ones, verifies and writes them. Each actor loads the
 parameters on whatever device it has (they travel as host arrays)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import ray
 from actors.selfplay import actor_env
 from orchestration.pool import start_ray
 from rllock.assembly import PictureWriter
-from rllock.generate import Collector, GenerateResult, Policy, play_round, searcher_for
+from rllock.inference import Collector, GenerateResult, Policy, play_round, searcher_for
 
 
 @ray.remote
@@ -31,18 +31,29 @@ class GenerateActor:
         return episodes, time.perf_counter() - start
 
 
-def generate_on_ray(policy: Policy, *, actors: int, address: str | None, count: int, batch: int,
-                    time_limit: float, seed: int, out: Path | None = None, picture: PictureWriter | None = None,
-                    progress: bool = True) -> GenerateResult:
-    """Like `rllock.generate.generate`, with rounds played by `actors` Ray actors (one core each)."""
+def generate_on_ray(
+    policy: Policy,
+    *,
+    actors: int,
+    address: str | None,
+    count: int,
+    batch: int,
+    time_limit: float,
+    seed: int,
+    out: Path | None = None,
+    picture: PictureWriter | None = None,
+    progress: bool = True,
+) -> GenerateResult:
+    """Like `rllock.inference.generate`, with rounds played by `actors` Ray actors (one core each)."""
     started = start_ray(address)
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))
         options = dict(num_cpus=1, runtime_env={"env_vars": actor_env(1)})
         pool = [GenerateActor.options(**options).remote(host_policy, batch) for _ in range(actors)]
         start = time.perf_counter()
-        collector = Collector(policy, count=count, batch=batch, seed=seed, out=out, picture=picture,
-                              progress=progress)
+        collector = Collector(
+            policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
+        )
         inflight = {a.play.remote(seed, r): a for r, a in enumerate(pool)}
         next_round = len(pool)
         while inflight and not collector.done:

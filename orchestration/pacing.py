@@ -23,16 +23,23 @@ class Pacing:
 
     @staticmethod
     def of(config: TrainConfig) -> Pacing:
-        return Pacing(config.warmup, config.learner.batch_size, config.replay_ratio, config.max_policy_lag,
-                      config.max_learner_steps)
+        return Pacing(
+            config.warmup,
+            config.learner.batch_size,
+            config.replay_ratio,
+            config.max_policy_lag,
+            config.max_learner_steps,
+        )
 
     def can_learn(self, *, step: int, transitions: int, version: int, oldest_version: int) -> bool:
         """Whether the learner may take step `step + 1` now: enough data, under the replay ratio, and
         no batch in flight is `max_policy_lag` versions behind."""
-        return (not self.reached_max(step)
-                and transitions >= max(self.warmup, 1)
-                and (step + 1) * self.batch_size <= self.replay_ratio * transitions
-                and version - oldest_version < self.max_policy_lag)
+        return (
+            not self.reached_max(step)
+            and transitions >= max(self.warmup, 1)
+            and (step + 1) * self.batch_size <= self.replay_ratio * transitions
+            and version - oldest_version < self.max_policy_lag
+        )
 
     def reached_max(self, step: int) -> bool:
         return self.max_learner_steps is not None and step >= self.max_learner_steps
@@ -52,9 +59,13 @@ class Schedule:
 
     @staticmethod
     def start(now: float, config: TrainConfig) -> Schedule:
-        return Schedule(deadline=now + 60 * config.minutes - RESERVE_S, checkpoint_s=60 * config.checkpoint_minutes,
-                        validate_s=60 * config.validate_minutes, next_validate=now + 60 * config.validate_minutes,
-                        next_report=now + REPORT_EVERY_S)
+        return Schedule(
+            deadline=now + 60 * config.minutes - RESERVE_S,
+            checkpoint_s=60 * config.checkpoint_minutes,
+            validate_s=60 * config.validate_minutes,
+            next_validate=now + 60 * config.validate_minutes,
+            next_report=now + REPORT_EVERY_S,
+        )
 
     def over(self, now: float) -> bool:
         return now >= self.deadline
@@ -84,8 +95,9 @@ class Schedule:
         return seconds is not None and now + seconds <= self.deadline
 
 
-def validation_estimate(batch_seconds: float | None, batch_episodes: int, episodes: int,
-                        last_validation_s: float | None) -> float | None:
+def validation_estimate(
+    batch_seconds: float | None, batch_episodes: int, episodes: int, last_validation_s: float | None
+) -> float | None:
     """Expected seconds of a validation of `episodes` lockstep episodes: the last one's time when there
     was one, else scaled from a self-play batch (lockstep cost grows about linearly with the batch)."""
     if last_validation_s is not None:

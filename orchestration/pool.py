@@ -52,8 +52,9 @@ def plan_layout(selfplay: SelfPlayConfig, *, cpus: float, gpus: float, reserved_
     if mode == "auto":
         mode = "lockstep" if gpus > 0 else "per-actor"
     if mode == "lockstep":
-        return Layout(1, actors * selfplay.episodes_per_batch, free, max(1, int(free)), 1.0 if gpus > 0 else 0.0,
-                      mode)
+        return Layout(
+            1, actors * selfplay.episodes_per_batch, free, max(1, int(free)), 1.0 if gpus > 0 else 0.0, mode
+        )
     share = free / actors  # fractional when there are more actors than cores: they take turns
     return Layout(actors, selfplay.episodes_per_batch, share, max(1, int(share)), 0.0, mode)
 
@@ -63,10 +64,17 @@ class ActorPool:
     call retried; the pool notices the new process and logs it. An actor that fails for good is dropped."""
 
     def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, layout: Layout, seed: int, buffer):
-        options = dict(num_cpus=layout.cpus, num_gpus=layout.gpus, max_restarts=-1, max_task_retries=-1,
-                       runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)})
-        self.actors = [SelfPlayActor.options(**options).remote(spec, net, mcts, layout.episodes, seed + i, buffer)
-                       for i in range(layout.actors)]
+        options = dict(
+            num_cpus=layout.cpus,
+            num_gpus=layout.gpus,
+            max_restarts=-1,
+            max_task_retries=-1,
+            runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
+        )
+        self.actors = [
+            SelfPlayActor.options(**options).remote(spec, net, mcts, layout.episodes, seed + i, buffer)
+            for i in range(layout.actors)
+        ]
         self.pids = dict(zip(self.actors, ray.get([a.pid.remote() for a in self.actors])))
         self.inflight: dict = {}
 

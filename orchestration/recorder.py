@@ -71,13 +71,22 @@ class Recorder:
             self.writer.add_scalar(tag, value, step)
 
     def checkpoint(self, step: int, state, validation: dict | None, counters: Counters) -> None:
-        ckpt.save(self.latest, step, state, ckpt.meta(to_json(self.config), self.task, step, validation,
-                                                       asdict(counters)))
+        ckpt.save(
+            self.latest,
+            step,
+            state,
+            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters)),
+        )
 
-    def best_checkpoint(self, step: int, state, validation: dict, counters: Counters,
-                        grid: np.ndarray | None) -> None:
-        ckpt.save(self.best, step, state, ckpt.meta(to_json(self.config), self.task, step, validation,
-                                                     asdict(counters)))
+    def best_checkpoint(
+        self, step: int, state, validation: dict, counters: Counters, grid: np.ndarray | None
+    ) -> None:
+        ckpt.save(
+            self.best,
+            step,
+            state,
+            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters)),
+        )
         if grid is not None:
             self._best_assembly(grid, step)
 
@@ -85,11 +94,19 @@ class Recorder:
         folder = self.logdir / "best_assembly"
         png = folder / "assembly.png"
         png.unlink(missing_ok=True)  # never leave the previous best's picture beside the new assembly
-        write_assembly(folder, grid, removal=self.task.removal, shape=self.task.shape_name,
-                       method={"name": "rl-lock validation", "step": step}, seed=self.config.seed, timings={},
-                       picture=write_picture)
-        self.writer.add_image("best/assembly", np.asarray(Image.open(png).convert("RGB")), step,
-                              dataformats="HWC")
+        write_assembly(
+            folder,
+            grid,
+            removal=self.task.removal,
+            shape=self.task.shape_name,
+            method={"name": "rl-lock validation", "step": step},
+            seed=self.config.seed,
+            timings={},
+            picture=write_picture,
+        )
+        self.writer.add_image(
+            "best/assembly", np.asarray(Image.open(png).convert("RGB")), step, dataformats="HWC"
+        )
 
     def close(self) -> None:
         self.writer.close()

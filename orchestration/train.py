@@ -74,13 +74,18 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
         ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.net.canvas), logdir)
         counters = Counters(**meta.get("counters", {}))
         # The best checkpoint may be newer than the latest readable one: its own score is the bar.
-        counters.best_rate, counters.best_return = max((counters.best_rate, counters.best_return),
-                                                       best_rank(logdir))
+        counters.best_rate, counters.best_return = max(
+            (counters.best_rate, counters.best_return), best_rank(logdir)
+        )
         last_score = meta.get("validation")
-        log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
+        log.info(
+            "resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes
+        )
     elif ckpt.saved_steps(logdir / "checkpoints"):
-        raise RLLockError(f"{logdir} already holds a training run; resume it with --resume {logdir} "
-                          f"or choose another --logdir")
+        raise RLLockError(
+            f"{logdir} already holds a training run; resume it with --resume {logdir} "
+            f"or choose another --logdir"
+        )
     recorder = Recorder(logdir, config, task, learner.step, resume)
     started_ray = start_ray(config.address)
     run = _Run(config, task, learner, recorder, counters, last_score, began)
@@ -93,21 +98,35 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
         if started_ray:
             ray.shutdown()
         if run.interrupted:
-            log.warning("stopped by Ctrl-C at learner step %d; checkpoint saved. Resume with: "
-                        "rllock train --resume %s", learner.step, logdir)
+            log.warning(
+                "stopped by Ctrl-C at learner step %d; checkpoint saved. Resume with: "
+                "rllock train --resume %s",
+                learner.step,
+                logdir,
+            )
 
 
 class _Run:
     """The actor-learner loop's state: what a checkpoint must capture, in one place."""
 
-    def __init__(self, config: TrainConfig, task: Task, learner: Learner, recorder: Recorder, counters: Counters,
-                 last_score: dict | None, began: float):
+    def __init__(
+        self,
+        config: TrainConfig,
+        task: Task,
+        learner: Learner,
+        recorder: Recorder,
+        counters: Counters,
+        last_score: dict | None,
+        began: float,
+    ):
         self.config, self.task, self.learner, self.recorder = config, task, learner, recorder
         self.counters, self.last_score = counters, last_score
         self.pacing = Pacing.of(config)
         self.began = began
         self.schedule = Schedule.start(began, config)
-        self.searcher = Searcher(PolicyValueNet(config.net), config.mcts, task.piece_size, config.validation_episodes)
+        self.searcher = Searcher(
+            PolicyValueNet(config.net), config.mcts, task.piece_size, config.validation_episodes
+        )
         self.interrupted = False
         self.lag = 0
         self.batch_seconds: float | None = None  # the last self-play batch's time, to estimate a validation
@@ -125,27 +144,56 @@ class _Run:
     def loop(self, resume: bool) -> dict:
         config, c, learner = self.config, self.counters, self.learner
         self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
-            config.buffer_capacity, self.task.size, config.mcts.candidates, self.task.piece_size,
-            *compact_dtypes(self.task))
+            config.buffer_capacity,
+            self.task.size,
+            config.mcts.candidates,
+            self.task.piece_size,
+            *compact_dtypes(self.task),
+        )
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
-            log.info("replay buffer restored: %d transitions", ray.get(self.buffer.restore.remote(str(snapshot))))
+            log.info(
+                "replay buffer restored: %d transitions", ray.get(self.buffer.restore.remote(str(snapshot)))
+            )
         resources = ray.cluster_resources()
-        layout = plan_layout(config.selfplay, cpus=resources.get("CPU", 1), gpus=resources.get("GPU", 0),
-                             reserved_cpus=1)
-        pool = ActorPool(TaskSpec.of(self.task), config.net, config.mcts, layout,
-                         config.seed * 1000 + 1 + c.episodes, self.buffer)
-        log.info("training %s K=%d: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; "
-                 "logs in %s", self.task.shape_name, self.task.pieces, layout.actors, layout.mode, layout.episodes,
-                 layout.threads, config.minutes, self.recorder.logdir)
+        layout = plan_layout(
+            config.selfplay, cpus=resources.get("CPU", 1), gpus=resources.get("GPU", 0), reserved_cpus=1
+        )
+        pool = ActorPool(
+            TaskSpec.of(self.task),
+            config.net,
+            config.mcts,
+            layout,
+            config.seed * 1000 + 1 + c.episodes,
+            self.buffer,
+        )
+        log.info(
+            "training %s K=%d: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; "
+            "logs in %s",
+            self.task.shape_name,
+            self.task.pieces,
+            layout.actors,
+            layout.mode,
+            layout.episodes,
+            layout.threads,
+            config.minutes,
+            self.recorder.logdir,
+        )
         weights = [ray.put(jax.device_get(learner.params))]
         pool.submit_all(weights, c.version)
         start, base_seconds = time.monotonic(), c.seconds
-        while not self.interrupted and not self.schedule.over(time.monotonic()) \
-                and not self.pacing.reached_max(learner.step):
+        while (
+            not self.interrupted
+            and not self.schedule.over(time.monotonic())
+            and not self.pacing.reached_max(learner.step)
+        ):
             oldest = pool.oldest_version()
-            can_learn = self.pacing.can_learn(step=learner.step, transitions=c.transitions, version=c.version,
-                                              oldest_version=c.version if oldest is None else oldest)
+            can_learn = self.pacing.can_learn(
+                step=learner.step,
+                transitions=c.transitions,
+                version=c.version,
+                oldest_version=c.version if oldest is None else oldest,
+            )
             timeout = 0.0 if can_learn else min(1.0, max(0.0, self.schedule.deadline - time.monotonic()))
             for actor, stats in pool.collect(timeout):
                 self._count(stats)
@@ -162,12 +210,20 @@ class _Run:
         if not self.interrupted:
             self._validate_if_it_fits(time.monotonic(), final=True)
         self._checkpoint()
-        return {"steps": learner.step, "episodes": c.episodes,
-                "selfplay_success_rate": c.successes / max(c.episodes, 1), "validation": self.last_score,
-                "best_success_rate": c.best_rate, "seconds": time.monotonic() - self.began, "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
-                "simulations_per_sec": c.simulations / max(c.seconds, 1e-9), "actors": layout.actors,
-                "logdir": str(self.recorder.logdir), "interrupted": self.interrupted,
-                "peak_rss_mb": dict(self.memory)}
+        return {
+            "steps": learner.step,
+            "episodes": c.episodes,
+            "selfplay_success_rate": c.successes / max(c.episodes, 1),
+            "validation": self.last_score,
+            "best_success_rate": c.best_rate,
+            "seconds": time.monotonic() - self.began,
+            "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
+            "simulations_per_sec": c.simulations / max(c.seconds, 1e-9),
+            "actors": layout.actors,
+            "logdir": str(self.recorder.logdir),
+            "interrupted": self.interrupted,
+            "peak_rss_mb": dict(self.memory),
+        }
 
     def _count(self, stats) -> None:
         c = self.counters
@@ -183,12 +239,21 @@ class _Run:
     def _learn(self) -> bool:
         """One learner step; True when it published a new weights version."""
         learner, c = self.learner, self.counters
-        sample = ray.get(self.buffer.sample.remote(self.config.learner.batch_size, learner.next_seed(),
-                                                   self.config.success_fraction))
+        sample = ray.get(
+            self.buffer.sample.remote(
+                self.config.learner.batch_size, learner.next_seed(), self.config.success_fraction
+            )
+        )
         losses = learner.update(sample)
         if learner.step % 10 == 0 or learner.step == 1:
-            self.recorder.scalars({"losses/policy": losses["policy"], "losses/value": losses["value"],
-                                   "losses/total": losses["policy"] + losses["value"]}, learner.step)
+            self.recorder.scalars(
+                {
+                    "losses/policy": losses["policy"],
+                    "losses/value": losses["value"],
+                    "losses/total": losses["policy"] + losses["value"],
+                },
+                learner.step,
+            )
         if learner.step % self.config.publish_every == 0:
             c.version += 1
             return True
@@ -199,11 +264,19 @@ class _Run:
         if schedule.report_due(now):
             self._charts()
             c = self.counters
-            log.info("step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | "
-                     "peak MiB driver %.0f buffer %.0f actor %.0f | %.0f s",
-                     step, c.episodes, 100 * c.successes / max(c.episodes, 1),
-                     "-" if self.last_score is None else f"{100 * self.last_score['success_rate']:.1f}%",
-                     self.lag, self.memory["driver"], self.memory["buffer"], self.memory["actor"], c.seconds)
+            log.info(
+                "step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | "
+                "peak MiB driver %.0f buffer %.0f actor %.0f | %.0f s",
+                step,
+                c.episodes,
+                100 * c.successes / max(c.episodes, 1),
+                "-" if self.last_score is None else f"{100 * self.last_score['success_rate']:.1f}%",
+                self.lag,
+                self.memory["driver"],
+                self.memory["buffer"],
+                self.memory["actor"],
+                c.seconds,
+            )
         if schedule.checkpoint_due(now, step):
             self._checkpoint()
             schedule.checkpointed(time.monotonic())
@@ -215,44 +288,75 @@ class _Run:
         c, step = self.counters, self.learner.step
         self.memory["driver"] = peak_rss_mb()
         seconds = max(c.seconds, 1e-9)
-        self.recorder.scalars({
-            "charts/episodes_per_sec": c.episodes / seconds, "charts/simulations_per_sec": c.simulations / seconds,
-            "charts/learner_steps_per_sec": step / seconds, "charts/policy_lag": self.lag,
-            "charts/selfplay_success_rate": c.successes / max(c.episodes, 1),
-            "buffer/size": min(c.transitions, self.config.buffer_capacity),
-            "buffer/success_transitions": self.buffer_successes,
-            **{f"memory/{kind}_peak_mb": mb for kind, mb in self.memory.items()}}, step)
+        self.recorder.scalars(
+            {
+                "charts/episodes_per_sec": c.episodes / seconds,
+                "charts/simulations_per_sec": c.simulations / seconds,
+                "charts/learner_steps_per_sec": step / seconds,
+                "charts/policy_lag": self.lag,
+                "charts/selfplay_success_rate": c.successes / max(c.episodes, 1),
+                "buffer/size": min(c.transitions, self.config.buffer_capacity),
+                "buffer/success_transitions": self.buffer_successes,
+                **{f"memory/{kind}_peak_mb": mb for kind, mb in self.memory.items()},
+            },
+            step,
+        )
 
     def _checkpoint(self) -> None:
         ray.get(self.buffer.snapshot.remote(str(self.recorder.logdir / "replay.npz")))
         self.recorder.checkpoint(self.learner.step, self.learner.state(), self.last_score, self.counters)
 
     def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
-        estimate = validation_estimate(self.batch_seconds, self.config.selfplay.episodes_per_batch,
-                                       self.config.validation_episodes, self.validation_seconds)
+        estimate = validation_estimate(
+            self.batch_seconds,
+            self.config.selfplay.episodes_per_batch,
+            self.config.validation_episodes,
+            self.validation_seconds,
+        )
         if not self.schedule.fits(now, estimate):
-            log.info("%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",
-                     "final " if final else "", "?" if estimate is None else f"{estimate:.0f}",
-                     self.schedule.deadline - now)
+            log.info(
+                "%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",
+                "final " if final else "",
+                "?" if estimate is None else f"{estimate:.0f}",
+                self.schedule.deadline - now,
+            )
             return
         self._validate()
 
     def _validate(self) -> None:
         c, step, task = self.counters, self.learner.step, self.task
         seed = self.config.seed + 7
-        episodes, seconds = evaluate(self.searcher, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed)
+        episodes, seconds = evaluate(
+            self.searcher, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
+        )
         self.validation_seconds = seconds
         wins = [e for e in episodes if e.success]
-        score = {"success_rate": len(wins) / len(episodes), "valid": len(wins), "episodes": len(episodes),
-                 "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
-                 "seconds": seconds, "time_per_valid_s": seconds / len(wins) if wins else None}
+        score = {
+            "success_rate": len(wins) / len(episodes),
+            "valid": len(wins),
+            "episodes": len(episodes),
+            "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
+            "seconds": seconds,
+            "time_per_valid_s": seconds / len(wins) if wins else None,
+        }
         self.last_score = score
-        self.recorder.scalars({"validation/success_rate": score["success_rate"],
-                               "validation/mean_return": score["mean_return"]}, step)
+        self.recorder.scalars(
+            {
+                "validation/success_rate": score["success_rate"],
+                "validation/mean_return": score["mean_return"],
+            },
+            step,
+        )
         if wins:
             self.recorder.scalars({"validation/time_per_valid_s": score["time_per_valid_s"]}, step)
-        log.info("validation at step %d: %d/%d valid (%.1f%%) in %.0f s", step, score["valid"], score["episodes"],
-                 100 * score["success_rate"], seconds)
+        log.info(
+            "validation at step %d: %d/%d valid (%.1f%%) in %.0f s",
+            step,
+            score["valid"],
+            score["episodes"],
+            100 * score["success_rate"],
+            seconds,
+        )
         if validation_rank(score) > (c.best_rate, c.best_return) or self.recorder.best.latest_step() is None:
             c.best_rate, c.best_return = max(validation_rank(score), (c.best_rate, c.best_return))
             grid = task.topology.to_grid(final_labels(task, wins[0].final)) if wins else None

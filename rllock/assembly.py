@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from rllock.errors import RLLockError
-from rllock.shapes import from_xfastest, to_xfastest, read_puz_labels, write_puz
+from rllock.shapes import from_xfastest, read_puz_labels, to_xfastest, write_puz
 from rllock.verifier import CHECKER_NAME, CHECKER_VERSION, Verdict, verify_labels
 
 FORMAT = "rllock-assembly"

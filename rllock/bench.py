@@ -16,9 +16,15 @@ log = logging.getLogger(__name__)
 # The paper's inference times (minutes, RTX 5090 workstation; None = nothing valid within 60 minutes),
 # DESIGN.md section 2: (cube size, K) -> (RL-Lock infer, DESIA).
 PAPER_MINUTES: dict[tuple[int, int], tuple[float, float | None]] = {
-    (4, 7): (0.05, 0.01), (4, 8): (0.47, 0.50), (4, 9): (1.22, None),
-    (5, 13): (0.60, 0.01), (5, 14): (0.84, 0.86), (5, 16): (1.68, 21.36),
-    (6, 20): (2.86, 0.12), (6, 22): (3.46, 2.54), (6, 25): (4.87, 32.26),
+    (4, 7): (0.05, 0.01),
+    (4, 8): (0.47, 0.50),
+    (4, 9): (1.22, None),
+    (5, 13): (0.60, 0.01),
+    (5, 14): (0.84, 0.86),
+    (5, 16): (1.68, 21.36),
+    (6, 20): (2.86, 0.12),
+    (6, 22): (3.46, 2.54),
+    (6, 25): (4.87, 32.26),
 }
 
 
@@ -43,8 +49,16 @@ def mid_episode_states(task: Task, placed: int, count: int, seed: int) -> list[S
     return states
 
 
-def bench_checkers(*, shape: str = "cube6", pieces: int = 25, piece: int = 13, seconds: float = 5.0,
-                   samples: int = 1024, seed: int = 0, removal: str = "straight") -> CheckerBench:
+def bench_checkers(
+    *,
+    shape: str = "cube6",
+    pieces: int = 25,
+    piece: int = 13,
+    seconds: float = 5.0,
+    samples: int = 1024,
+    seed: int = 0,
+    removal: str = "straight",
+) -> CheckerBench:
     """Raw chunks sampled and checked per second on one core: calls of `samples` chunks (one search
     node's worth, including its per-node preparation) cycling over seeded mid-episode states."""
     task = make_task(shape, pieces, removal)
@@ -96,8 +110,9 @@ class SolveRow:
     ratio: float | None  # ours / paper RL-Lock
 
 
-def bench_solve_task(size: int, pieces: int, *, count: int, time_limit: float, seed: int,
-                     config: SearchConfig) -> SolveRow:
+def bench_solve_task(
+    size: int, pieces: int, *, count: int, time_limit: float, seed: int, config: SearchConfig
+) -> SolveRow:
     task = make_task(f"cube{size}", pieces)
     sample_accepted(task, initial_state(task), seed=0, num_samples=1)  # load compiled code before timing
     t0 = time.perf_counter()
@@ -110,7 +125,11 @@ def bench_solve_task(size: int, pieces: int, *, count: int, time_limit: float, s
     rl_min, desia_min = PAPER_MINUTES[(size, pieces)]
     per_valid = elapsed / found if found else None
     return SolveRow(
-        f"{size}^3 K={pieces}", found, elapsed, per_valid, rl_min * 60,
+        f"{size}^3 K={pieces}",
+        found,
+        elapsed,
+        per_valid,
+        rl_min * 60,
         None if desia_min is None else desia_min * 60,
         None if per_valid is None else per_valid / (rl_min * 60),
     )
@@ -128,9 +147,10 @@ def format_solve_table(rows: list[SolveRow], time_limit: float) -> str:
     ]
     for r in rows:
         ratio = "-" if r.ratio is None else f"{r.ratio:.3f}"
-        lines.append(f"| {r.task} | {r.found} | {secs(r.time_per_valid_s, True)} | {r.paper_rllock_s:.1f} | "
-                     f"{ratio} | {secs(r.paper_desia_s)} |")
+        lines.append(
+            f"| {r.task} | {r.found} | {secs(r.time_per_valid_s, True)} | {r.paper_rllock_s:.1f} | "
+            f"{ratio} | {secs(r.paper_desia_s)} |"
+        )
     beat = sum(1 for r in rows if r.ratio is not None and r.ratio <= 0.1)
     lines.append(f"\nAt most 1/10 of the paper's RL-Lock time on {beat} of {len(rows)} tasks.")
     return "\n".join(lines)
-

@@ -40,14 +40,22 @@ def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = 
         config = from_json(TrainConfig, doc)
         limit = max_learner_steps if max_learner_steps is not None else config.max_learner_steps
         return dataclasses.replace(config, logdir=str(logdir), minutes=minutes, max_learner_steps=limit)
-    raise RLLockError(f"cannot resume {logdir}: it holds no readable checkpoint (start it again without --resume)")
+    raise RLLockError(
+        f"cannot resume {logdir}: it holds no readable checkpoint (start it again without --resume)"
+    )
 
 
 def meta(config: dict, task: Task, step: int, validation: dict | None, counters: dict) -> dict:
     """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas."""
-    return {"format": FORMAT, "version": META_VERSION, "step": step,
-            "task": task_identity(task, config["net"]["canvas"]), "config": config, "validation": validation,
-            "counters": counters}
+    return {
+        "format": FORMAT,
+        "version": META_VERSION,
+        "step": step,
+        "task": task_identity(task, config["net"]["canvas"]),
+        "config": config,
+        "validation": validation,
+        "counters": counters,
+    }
 
 
 def task_identity(task: Task, canvas: int) -> dict:
@@ -57,7 +65,9 @@ def task_identity(task: Task, canvas: int) -> dict:
         "shape": task.shape_name,
         "dimensions": list(grid.shape),
         "grid": [int(v) for v in to_xfastest(grid.astype(np.int8))],
-        "grid_sha256": hashlib.sha256(np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")).hexdigest(),
+        "grid_sha256": hashlib.sha256(
+            np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")
+        ).hexdigest(),
         "pieces": task.pieces,
         "removal": task.removal,
         "canvas": canvas,
@@ -91,8 +101,11 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None
     """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
     if step in mngr.all_steps():
         mngr.delete(step)
-    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
-              force=True)
+    mngr.save(
+        step,
+        args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+        force=True,
+    )
     mngr.wait_until_finished()
 
 
@@ -115,7 +128,9 @@ def find_step_dir(path: Path) -> Path:
         steps = saved_steps(folder)
         if steps:
             return folder / str(steps[-1])
-    raise RLLockError(f"{path} holds no RL-Lock checkpoint (expected best/, checkpoints/ or a step directory)")
+    raise RLLockError(
+        f"{path} holds no RL-Lock checkpoint (expected best/, checkpoints/ or a step directory)"
+    )
 
 
 def read_meta(step_dir: Path) -> dict:
@@ -134,12 +149,17 @@ def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any
     a CPU-only machine). With `partial`, `template` may name a subtree of what was saved, such as
     {"params": ...}: only that is read."""
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    abstract = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), template)
+    abstract = jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), template
+    )
     path = (step_dir / "state").absolute()
     try:
         if partial:
-            args = ocp.args.PyTreeRestore(item=abstract, partial_restore=True,
-                                          restore_args=ocp.checkpoint_utils.construct_restore_args(abstract))
+            args = ocp.args.PyTreeRestore(
+                item=abstract,
+                partial_restore=True,
+                restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+            )
             return ocp.PyTreeCheckpointer().restore(path, args=args)
         return ocp.StandardCheckpointer().restore(path, abstract)
     except Exception as exc:  # orbax raises many kinds of errors for damaged files

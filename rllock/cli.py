@@ -31,13 +31,24 @@ def _positive_float(text: str) -> float:
 
 
 def _add_task_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shape", required=True,
-                   help="cubeN, box:WxHxD, ring, a .puz/.vol/.npy file, or a closed .stl/.obj mesh")
-    p.add_argument("--resolution", type=int, default=None,
-                   help="for .stl/.obj shapes: at most this many voxels along the longest side (default 8)")
+    p.add_argument(
+        "--shape",
+        required=True,
+        help="cubeN, box:WxHxD, ring, a .puz/.vol/.npy file, or a closed .stl/.obj mesh",
+    )
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        help="for .stl/.obj shapes: at most this many voxels along the longest side (default 8)",
+    )
     p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default="straight",
-                   help="straight: one axis slide per piece (default); path: DESIA's multi-move test")
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default="straight",
+        help="straight: one axis slide per piece (default); path: DESIA's multi-move test",
+    )
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -63,8 +74,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
     elif verdict.valid:
         sys.stdout.write(f"valid: {verdict.pieces} pieces, removal={verdict.removal}, key = piece 1\n")
     else:
-        sys.stdout.write(f"invalid: stage {verdict.failed_stage} fails the {verdict.failed_check} check "
-                         f"(removal={verdict.removal})\n")
+        sys.stdout.write(
+            f"invalid: stage {verdict.failed_stage} fails the {verdict.failed_check} check "
+            f"(removal={verdict.removal})\n"
+        )
     return 0 if verdict.valid else 1
 
 
@@ -84,41 +97,64 @@ def cmd_solve(args: argparse.Namespace) -> int:
     picture = _picture()
     start = time.perf_counter()
     found = 0
-    with tqdm(total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly",
-              disable=None) as bar:
+    with tqdm(
+        total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly", disable=None
+    ) as bar:
         for f in search(task, seed=args.seed, time_limit=args.time_limit, config=config):
             found += 1
             folder = out / f"assembly_{found:03d}"
-            write_assembly(folder, f.labels, removal=task.removal, shape=task.shape_name,
-                           method={"name": "search", **asdict(config)}, seed=args.seed,
-                           timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
-                           picture=picture)
+            write_assembly(
+                folder,
+                f.labels,
+                removal=task.removal,
+                shape=task.shape_name,
+                method={"name": "search", **asdict(config)},
+                seed=args.seed,
+                timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
+                picture=picture,
+            )
             log.info("wrote %s (%.2f s)", folder, f.seconds)
             bar.update(1)
             if found >= args.count:
                 break
     elapsed = time.perf_counter() - start
     if found == 0:
-        sys.stdout.write(f"solve: no valid assembly of {task.shape_name} K={task.pieces} within "
-                         f"{args.time_limit:g} s\n")
+        sys.stdout.write(
+            f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s\n"
+        )
         return 1
-    sys.stdout.write(f"solve: {found} valid {_assemblies(found)} of {task.shape_name} K={task.pieces} in {elapsed:.2f} s: "
-                     f"{elapsed / found:.3f} s per valid assembly -> {out}\n")
+    sys.stdout.write(
+        f"solve: {found} valid {_assemblies(found)} of {task.shape_name} K={task.pieces} in {elapsed:.2f} s: "
+        f"{elapsed / found:.3f} s per valid assembly -> {out}\n"
+    )
     return 0
 
 
 def cmd_bench_checkers(args: argparse.Namespace) -> int:
     from rllock.bench import bench_checkers
 
-    r = bench_checkers(shape=args.shape, pieces=args.pieces, piece=args.piece, seconds=args.seconds,
-                       removal=args.removal)
+    r = bench_checkers(
+        shape=args.shape, pieces=args.pieces, piece=args.piece, seconds=args.seconds, removal=args.removal
+    )
     if args.json:
-        sys.stdout.write(json.dumps({**asdict(r), "shape": args.shape, "pieces": args.pieces,
-                                     "piece": args.piece, "removal": args.removal}) + "\n")
+        sys.stdout.write(
+            json.dumps(
+                {
+                    **asdict(r),
+                    "shape": args.shape,
+                    "pieces": args.pieces,
+                    "piece": args.piece,
+                    "removal": args.removal,
+                }
+            )
+            + "\n"
+        )
     else:
-        sys.stdout.write(f"checkers: {r.chunks_per_sec:,.0f} raw chunks sampled and checked per second "
-                         f"(median of {r.repeats} calls of 1024, one core), accept rate {r.accept_rate:.2%}, "
-                         f"piece {args.piece} of {args.shape} K={args.pieces}, removal={args.removal}\n")
+        sys.stdout.write(
+            f"checkers: {r.chunks_per_sec:,.0f} raw chunks sampled and checked per second "
+            f"(median of {r.repeats} calls of 1024, one core), accept rate {r.accept_rate:.2%}, "
+            f"piece {args.piece} of {args.shape} K={args.pieces}, removal={args.removal}\n"
+        )
     return 0
 
 
@@ -129,12 +165,24 @@ def cmd_bench_solve(args: argparse.Namespace) -> int:
     tasks = parse_tasks(args.tasks)
     rows = []
     for size, pieces in tqdm(tasks, desc="bench solve", unit="task", disable=None):
-        rows.append(bench_solve_task(size, pieces, count=args.count, time_limit=args.time_limit,
-                                     seed=args.seed, config=SearchConfig()))
+        rows.append(
+            bench_solve_task(
+                size,
+                pieces,
+                count=args.count,
+                time_limit=args.time_limit,
+                seed=args.seed,
+                config=SearchConfig(),
+            )
+        )
         log.info("%s: %d found in %.1f s", rows[-1].task, rows[-1].found, rows[-1].seconds)
     if args.json:
-        sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "count": args.count,
-                                     "tasks": [asdict(r) for r in rows]}) + "\n")
+        sys.stdout.write(
+            json.dumps(
+                {"time_limit_s": args.time_limit, "count": args.count, "tasks": [asdict(r) for r in rows]}
+            )
+            + "\n"
+        )
     else:
         sys.stdout.write(format_solve_table(rows, args.time_limit) + "\n")
     return 0
@@ -161,8 +209,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     result = train(config, resume=bool(args.resume))
     if result["interrupted"]:
-        sys.stdout.write(f"train: stopped at learner step {result['steps']}; resume with: "
-                         f"rllock train --resume {result['logdir']}\n")
+        sys.stdout.write(
+            f"train: stopped at learner step {result['steps']}; resume with: "
+            f"rllock train --resume {result['logdir']}\n"
+        )
         return 130
     val = result["validation"]
     last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
@@ -172,7 +222,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"{result['seconds']:.0f} s; last validation {last}, best "
         f"{max(0.0, 100 * result['best_success_rate']):.1f}%\n"
         f"checkpoints: {result['logdir']}/best (best) and {result['logdir']}/checkpoints (latest)\n"
-        f"watch it: tensorboard --logdir {result['logdir']}\n")
+        f"watch it: tensorboard --logdir {result['logdir']}\n"
+    )
     return 0
 
 
@@ -205,8 +256,14 @@ def cmd_generate(args: argparse.Namespace) -> int:
     if args.actors < 0:
         raise RLLockError(f"--actors must be >= 0, got {args.actors}")
     policy = _load_for(args)
-    settings = dict(count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed, out=out,
-                    picture=_picture())
+    settings = dict(
+        count=args.count,
+        batch=args.batch,
+        time_limit=args.time_limit,
+        seed=args.seed,
+        out=out,
+        picture=_picture(),
+    )
     if args.actors:
         _ray_on_loopback_unless(args.address)
         from orchestration.generate import generate_on_ray
@@ -218,17 +275,23 @@ def cmd_generate(args: argparse.Namespace) -> int:
         result = generate(policy, **settings)
     task = policy.task
     if result.valid == 0:
-        sys.stdout.write(f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
-                         f"episodes ({result.seconds:.1f} s)\n")
+        sys.stdout.write(
+            f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
+            f"episodes ({result.seconds:.1f} s)\n"
+        )
         return 1
-    sys.stdout.write(f"generate: {result.valid} valid {_assemblies(result.valid)} of {task.shape_name} K={task.pieces} from "
-                     f"{result.episodes} episodes in {result.seconds:.1f} s: {result.time_per_valid_s:.2f} s per "
-                     f"valid assembly -> {args.out}\n")
+    sys.stdout.write(
+        f"generate: {result.valid} valid {_assemblies(result.valid)} of {task.shape_name} K={task.pieces} "
+        f"from "
+        f"{result.episodes} episodes in {result.seconds:.1f} s: {result.time_per_valid_s:.2f} s per "
+        f"valid assembly -> {args.out}\n"
+    )
     return 0
 
 
-def learning_ratio(trained: float | None, untrained: float | None,
-                   untrained_seconds: float) -> tuple[float | None, float | None]:
+def learning_ratio(
+    trained: float | None, untrained: float | None, untrained_seconds: float
+) -> tuple[float | None, float | None]:
     """(trained / untrained time per valid assembly, an upper bound on it when only the untrained arm
     found nothing: having found none in S seconds, it needs more than S per valid assembly)."""
     if trained is None:
@@ -245,18 +308,31 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
     rows = {}
     for name, policy in (("trained", trained), ("untrained", untrained_like(trained, args.seed))):
         r = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed)
-        rows[name] = {"valid": r.valid, "episodes": r.episodes, "seconds": r.seconds,
-                      "success_rate": r.success_rate, "time_per_valid_s": r.time_per_valid_s}
+        rows[name] = {
+            "valid": r.valid,
+            "episodes": r.episodes,
+            "seconds": r.seconds,
+            "success_rate": r.success_rate,
+            "time_per_valid_s": r.time_per_valid_s,
+        }
         log.info("%s: %d valid of %d episodes in %.1f s", name, r.valid, r.episodes, r.seconds)
     t, u = rows["trained"]["time_per_valid_s"], rows["untrained"]["time_per_valid_s"]
     ratio, bound = learning_ratio(t, u, rows["untrained"]["seconds"])
-    doc = {"checkpoint": trained.source, "step": trained.step, "task": f"{trained.task.shape_name} K={trained.task.pieces}",
-           **rows, "ratio_trained_over_untrained": ratio, "ratio_upper_bound": bound}
+    doc = {
+        "checkpoint": trained.source,
+        "step": trained.step,
+        "task": f"{trained.task.shape_name} K={trained.task.pieces}",
+        **rows,
+        "ratio_trained_over_untrained": ratio,
+        "ratio_upper_bound": bound,
+    }
     if args.json:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
+
         def fmt(v):
             return "none found" if v is None else f"{v:.2f} s"
+
         sys.stdout.write(
             f"learning ({doc['task']}, step {trained.step}, batches of {args.batch}, seed {args.seed}):\n"
             f"  trained:   {fmt(t)} per valid, success rate {100 * rows['trained']['success_rate']:.1f}% "
@@ -264,7 +340,8 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
             f"  untrained: {fmt(u)} per valid, success rate {100 * rows['untrained']['success_rate']:.1f}% "
             f"({rows['untrained']['valid']}/{rows['untrained']['episodes']})\n"
             f"  ratio trained/untrained: {'-' if ratio is None else f'{ratio:.3f}'}"
-            f"{'' if bound is None else f' (below {bound:.3f}: the untrained arm found none)'}\n")
+            f"{'' if bound is None else f' (below {bound:.3f}: the untrained arm found none)'}\n"
+        )
     return 0
 
 
@@ -283,34 +360,62 @@ def cmd_bench_selfplay(args: argparse.Namespace) -> int:
 
     task = make_task(args.shape, args.pieces)
     net = fit_canvas(task, NetConfig(canvas=args.canvas))
-    rows = bench_selfplay(task, net, MCTSConfig(simulations=args.simulations),
-                          SelfPlayConfig(episodes_per_batch=args.episodes_per_batch, evaluation=args.evaluation),
-                          counts, args.seconds)
+    rows = bench_selfplay(
+        task,
+        net,
+        MCTSConfig(simulations=args.simulations),
+        SelfPlayConfig(episodes_per_batch=args.episodes_per_batch, evaluation=args.evaluation),
+        counts,
+        args.seconds,
+    )
     if args.json:
-        sys.stdout.write(json.dumps({"shape": args.shape, "pieces": args.pieces, "canvas": net.canvas,
-                                     "simulations": args.simulations, "rows": rows}) + "\n")
+        sys.stdout.write(
+            json.dumps(
+                {
+                    "shape": args.shape,
+                    "pieces": args.pieces,
+                    "canvas": net.canvas,
+                    "simulations": args.simulations,
+                    "rows": rows,
+                }
+            )
+            + "\n"
+        )
     else:
         base = rows[0]["episodes_per_sec"]
         for r in rows:
             split = ", ".join(f"{k} {v:.2f}" for k, v in r["ms_per_simulation"].items())
-            sys.stdout.write(f"{r['actors']} actor(s) ({r['mode']}, {r['threads_per_actor']} thread(s) each): "
-                             f"{r['episodes_per_sec']:.3f} episodes/s, {r['simulations_per_sec']:.0f} simulations/s, "
-                             f"x{r['episodes_per_sec'] / base:.2f} vs {rows[0]['actors']}; ms per simulation "
-                             f"and episode row: {split}\n")
+            sys.stdout.write(
+                f"{r['actors']} actor(s) ({r['mode']}, {r['threads_per_actor']} thread(s) each): "
+                f"{r['episodes_per_sec']:.3f} episodes/s, {r['simulations_per_sec']:.0f} simulations/s, "
+                f"x{r['episodes_per_sec'] / base:.2f} vs {rows[0]['actors']}; ms per simulation "
+                f"and episode row: {split}\n"
+            )
     return 0
 
 
 def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="a training run's log directory (its best checkpoint) "
-                   "or one checkpoint directory")
+    p.add_argument(
+        "--checkpoint",
+        required=True,
+        help="a training run's log directory (its best checkpoint) or one checkpoint directory",
+    )
     p.add_argument("--count", type=int, default=5, help="valid assemblies to find")
-    p.add_argument("--batch", type=int, default=64, help="episodes per batch (one network call per simulation)")
+    p.add_argument(
+        "--batch", type=int, default=64, help="episodes per batch (one network call per simulation)"
+    )
     p.add_argument("--time-limit", type=_positive_float, default=3600.0, help="seconds")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
-    p.add_argument("--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default=None,
-                   help="optional: fail unless the checkpoint uses this removal mode")
+    p.add_argument(
+        "--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K"
+    )
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default=None,
+        help="optional: fail unless the checkpoint uses this removal mode",
+    )
     p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
 
 
@@ -321,8 +426,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("verify", help="check every stage of an assembly (.puz or assembly.json)")
     p.add_argument("file")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default=None,
-                   help="default: the mode an assembly.json names, else straight")
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default=None,
+        help="default: the mode an assembly.json names, else straight",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_verify)
 
@@ -352,18 +461,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_bench_solve)
 
     p = sub.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
-    add_flags(p, TrainConfig, required_unless="--resume",
-              choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES})
-    p.add_argument("--resume", metavar="LOGDIR", default=None,
-                   help="continue the run in LOGDIR with its saved config; --minutes is the time to add, "
-                        "--max-learner-steps a new step limit")
+    add_flags(
+        p,
+        TrainConfig,
+        required_unless="--resume",
+        choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES},
+    )
+    p.add_argument(
+        "--resume",
+        metavar="LOGDIR",
+        default=None,
+        help="continue the run in LOGDIR with its saved config; --minutes is the time to add, "
+        "--max-learner-steps a new step limit",
+    )
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("generate", help="assemblies from a trained checkpoint (batched MCTS)")
     _add_checkpoint_args(p)
-    p.add_argument("--actors", type=int, default=0,
-                   help="play the rounds on this many Ray actors, one core each (default 0: in this process, "
-                        "on all cores)")
+    p.add_argument(
+        "--actors",
+        type=int,
+        default=0,
+        help="play the rounds on this many Ray actors, one core each (default 0: in this process, "
+        "on all cores)",
+    )
     p.add_argument("--address", default=None, help="with --actors: join this Ray cluster (HOST:PORT or auto)")
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
     p.set_defaults(func=cmd_generate)
@@ -381,8 +502,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--simulations", type=int, default=256)
     p.add_argument("--canvas", type=int, default=None, help="default: the smallest that fits the shape")
     p.add_argument("--episodes-per-batch", type=int, default=8)
-    p.add_argument("--evaluation", choices=EVALUATION_MODES, default="auto",
-                   help=field_docs(SelfPlayConfig)["evaluation"])
+    p.add_argument(
+        "--evaluation",
+        choices=EVALUATION_MODES,
+        default="auto",
+        help=field_docs(SelfPlayConfig)["evaluation"],
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_selfplay)
 
@@ -392,9 +517,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr,
-                        force=True)  # ray/absl install root handlers on import; ours must win
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+        force=True,
+    )  # ray/absl install root handlers on import; ours must win
     for noisy in ("numba", "jax", "absl", "matplotlib", "PIL", "orbax", "ray"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     # A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);

@@ -134,13 +134,20 @@ class TrainConfig:
     def validate(self) -> None:
         """Bad settings are one-line errors here, not tracebacks deep inside a run."""
         positive = {
-            "minutes": self.minutes, "simulations": self.mcts.simulations,
-            "max_considered": self.mcts.max_considered, "raw_samples": self.mcts.raw_samples,
-            "candidates": self.mcts.candidates, "episodes_per_batch": self.selfplay.episodes_per_batch,
-            "learning_rate": self.learner.learning_rate, "batch_size": self.learner.batch_size,
-            "buffer_capacity": self.buffer_capacity, "replay_ratio": self.replay_ratio,
-            "publish_every": self.publish_every, "max_policy_lag": self.max_policy_lag,
-            "validate_minutes": self.validate_minutes, "validation_episodes": self.validation_episodes,
+            "minutes": self.minutes,
+            "simulations": self.mcts.simulations,
+            "max_considered": self.mcts.max_considered,
+            "raw_samples": self.mcts.raw_samples,
+            "candidates": self.mcts.candidates,
+            "episodes_per_batch": self.selfplay.episodes_per_batch,
+            "learning_rate": self.learner.learning_rate,
+            "batch_size": self.learner.batch_size,
+            "buffer_capacity": self.buffer_capacity,
+            "replay_ratio": self.replay_ratio,
+            "publish_every": self.publish_every,
+            "max_policy_lag": self.max_policy_lag,
+            "validate_minutes": self.validate_minutes,
+            "validation_episodes": self.validation_episodes,
             "checkpoint_minutes": self.checkpoint_minutes,
         }
         for name, value in positive.items():
@@ -150,8 +157,12 @@ class TrainConfig:
             raise RLLockError(f"--pieces must be at least 2, got {self.pieces}")
         if self.net.canvas is not None and self.net.canvas < 1:
             raise RLLockError(f"--canvas must be positive, got {self.net.canvas}")
-        if self.selfplay.actors < 0 or (self.min_buffer or 0) < 0 or not self.net.features \
-                or min(self.net.features) < 1:
+        if (
+            self.selfplay.actors < 0
+            or (self.min_buffer or 0) < 0
+            or not self.net.features
+            or min(self.net.features) < 1
+        ):
             raise RLLockError("--actors and --min-buffer must be >= 0 and --features positive")
         if self.max_learner_steps is not None and self.max_learner_steps < 1:
             raise RLLockError(f"--max-learner-steps must be at least 1, got {self.max_learner_steps}")
@@ -160,8 +171,9 @@ class TrainConfig:
         if self.learner.batch_size > self.buffer_capacity:
             raise RLLockError("--batch-size cannot exceed --buffer-capacity")
         if self.selfplay.evaluation not in EVALUATION_MODES:
-            raise RLLockError(f"--evaluation must be one of {', '.join(EVALUATION_MODES)}, "
-                              f"got {self.selfplay.evaluation!r}")
+            raise RLLockError(
+                f"--evaluation must be one of {', '.join(EVALUATION_MODES)}, got {self.selfplay.evaluation!r}"
+            )
         if Path(self.logdir).exists() and not Path(self.logdir).is_dir():
             raise RLLockError(f"--logdir {self.logdir} is a file")
 

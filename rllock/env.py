@@ -43,8 +43,13 @@ class State:
     placed: int  # i: pieces P1..Pi are placed
 
 
-def make_task(shape: str | np.ndarray, pieces: int, removal: str = "straight", name: str | None = None,
-              resolution: int | None = None) -> Task:
+def make_task(
+    shape: str | np.ndarray,
+    pieces: int,
+    removal: str = "straight",
+    name: str | None = None,
+    resolution: int | None = None,
+) -> Task:
     if removal not in REMOVAL_MODES:
         raise RLLockError(f"unknown removal mode {removal!r}: use one of {', '.join(REMOVAL_MODES)}")
     grid = load_shape(shape, resolution) if isinstance(shape, str) else np.asarray(shape, dtype=bool)
@@ -97,8 +102,18 @@ def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) ->
     """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n]."""
     topo = task.topology
     accepted, _ = fast.sample_and_check(
-        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, state.labels,
-        state.placed + 1, task.piece_size, num_samples, task.removal == "path", seed,
+        topo.nbr,
+        topo.ray,
+        topo.line,
+        topo.n_lines,
+        topo.coords,
+        topo.index,
+        state.labels,
+        state.placed + 1,
+        task.piece_size,
+        num_samples,
+        task.removal == "path",
+        seed,
     )
     return accepted
 
@@ -110,22 +125,46 @@ def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_can
     topo = task.topology
     out = np.zeros((max_candidates, task.piece_size), np.int32)
     found, _ = fast.node_candidates(
-        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, state.labels, state.placed + 1,
-        task.piece_size, num_samples, max_candidates, task.removal == "path", seed, out,
+        topo.nbr,
+        topo.ray,
+        topo.line,
+        topo.n_lines,
+        topo.coords,
+        topo.index,
+        state.labels,
+        state.placed + 1,
+        task.piece_size,
+        num_samples,
+        max_candidates,
+        task.removal == "path",
+        seed,
+        out,
     )
     return out[:found]
 
 
-def candidates_many(task: Task, states: list[State], seeds: np.ndarray, *, num_samples: int,
-                    max_candidates: int) -> tuple[list[np.ndarray], int]:
+def candidates_many(
+    task: Task, states: list[State], seeds: np.ndarray, *, num_samples: int, max_candidates: int
+) -> tuple[list[np.ndarray], int]:
     """`candidates` for several states in one compiled call (one thread per state); also the raw
     samples drawn in all."""
     topo = task.topology
     labels = np.stack([s.labels for s in states])
     pieces = np.array([s.placed + 1 for s in states], np.int64)
     out, found, drawn = fast.candidates_many(
-        topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index, labels, pieces, task.piece_size,
-        num_samples, max_candidates, task.removal == "path", np.asarray(seeds, np.int64),
+        topo.nbr,
+        topo.ray,
+        topo.line,
+        topo.n_lines,
+        topo.coords,
+        topo.index,
+        labels,
+        pieces,
+        task.piece_size,
+        num_samples,
+        max_candidates,
+        task.removal == "path",
+        np.asarray(seeds, np.int64),
     )
     return [out[b, : found[b]] for b in range(len(states))], int(drawn.sum())
 

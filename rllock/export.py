@@ -47,8 +47,9 @@ PRINT_GAP = 0.2
 log = logging.getLogger(__name__)
 
 
-def write_meshes(labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: float = 10.0,
-                 gap: float = PRINT_GAP) -> list[Path]:
+def write_meshes(
+    labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: float = 10.0, gap: float = PRINT_GAP
+) -> list[Path]:
     """One mesh file per piece, `piece_NN.<fmt>`, in piece order; returns the paths written."""
     from rllock.meshes import assembly_meshes, edge_only_contacts  # imported here: trimesh is slow to import
 
@@ -60,8 +61,11 @@ def write_meshes(labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: 
         if pinched:
             ids = ", ".join(map(str, pinched))
             which = f"piece {ids} has" if len(pinched) == 1 else f"pieces {ids} have"
-            log.warning("%s voxels that touch only along an edge: with gap 0 such STL files are not manifold "
-                        "once a slicer welds vertices (use a gap > 0, or OBJ)", which)
+            log.warning(
+                "%s voxels that touch only along an edge: with gap 0 such STL files are not manifold "
+                "once a slicer welds vertices (use a gap > 0, or OBJ)",
+                which,
+            )
     meshes = assembly_meshes(labels, voxel_size, gap)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,7 +135,7 @@ def xmpuzzle_xml(labels: np.ndarray, verdict: Verdict, title: str) -> str:
         cells = np.argwhere(labels == i)
         lo, hi = cells.min(axis=0), cells.max(axis=0) + 1
         corners.append(lo)
-        box = labels[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] == i
+        box = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] == i
         shapes.append(_voxel(box, f"P{i} (key)" if i == 1 else f"P{i}"))
     problem = ET.SubElement(ET.SubElement(puzzle, "problems"), "problem", name=title, state="0")
     parts = ET.SubElement(problem, "shapes")
@@ -143,8 +147,10 @@ def xmpuzzle_xml(labels: np.ndarray, verdict: Verdict, title: str) -> str:
     assembly.text = " ".join(f"{x} {y} {z} 0" for x, y, z in corners)
     solution.append(_separation(verdict.disassembly, 0, k))
     comment = ET.SubElement(puzzle, "comment")
-    comment.text = (f"{title}: made by RL-Lock, {k} pieces, removal={verdict.removal}; piece P1 is the key, "
-                    f"pieces come out in the order P1..P{k - 1}, P{k} stays")
+    comment.text = (
+        f"{title}: made by RL-Lock, {k} pieces, removal={verdict.removal}; piece P1 is the key, "
+        f"pieces come out in the order P1..P{k - 1}, P{k} stays"
+    )
     # BurrTools' parser wants its own plain declaration; the body has no whitespace between tags.
     return '<?xml version="1.0"?>\n' + ET.tostring(puzzle, encoding="unicode")
 

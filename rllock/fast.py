@@ -242,8 +242,14 @@ def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queu
         oz = code % sz - gz
         oy = (code // sz) % sy - gy
         ox = code // (sy * sz) - gx
-        if (hi[0] + ox < 0 or lo[0] + ox >= gx or hi[1] + oy < 0 or lo[1] + oy >= gy
-                or hi[2] + oz < 0 or lo[2] + oz >= gz):
+        if (
+            hi[0] + ox < 0
+            or lo[0] + ox >= gx
+            or hi[1] + oy < 0
+            or lo[1] + oy >= gy
+            or hi[2] + oz < 0
+            or lo[2] + oz >= gz
+        ):
             return True
         for k in range(6):
             dx = (1 if k == 0 else -1 if k == 1 else 0) + ox
@@ -270,8 +276,28 @@ def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queu
 
 
 @njit(cache=True)
-def _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path, full,
-           in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp):
+def _check(
+    chunk,
+    n,
+    piece,
+    nbr,
+    line,
+    coords,
+    index,
+    part_of,
+    ray_r,
+    base,
+    removal_path,
+    full,
+    in_chunk,
+    mark,
+    queue,
+    line_count,
+    counts,
+    visited,
+    off_queue,
+    stamp,
+):
     """Bitmask of passed checks (CONNECTED | REMOVABLE | INTERLOCKING). With `full` false it stops at
     the first failure and returns 0 for any rejected chunk."""
     r_node = piece
@@ -298,14 +324,21 @@ def _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, remo
 @njit(cache=True)
 def _scratch(n_vox, n_lines, n_parts, dims):
     n_off = (2 * dims[0] + 1) * (2 * dims[1] + 1) * (2 * dims[2] + 1)
-    return (np.zeros(n_vox, np.int64), np.zeros(n_vox, np.int64), np.empty(n_vox, np.int32),
-            np.zeros(n_lines, np.int32), np.zeros((3, n_parts, n_parts), np.int32),
-            np.zeros(n_off, np.int64), np.empty(n_off, np.int64))
+    return (
+        np.zeros(n_vox, np.int64),
+        np.zeros(n_vox, np.int64),
+        np.empty(n_vox, np.int32),
+        np.zeros(n_lines, np.int32),
+        np.zeros((3, n_parts, n_parts), np.int32),
+        np.zeros(n_off, np.int64),
+        np.empty(n_off, np.int64),
+    )
 
 
 @njit(cache=True)
-def sample_and_check(nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples,
-                     removal_path, seed):
+def sample_and_check(
+    nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples, removal_path, seed
+):
     """Sample `num_samples` raw chunks for piece `piece` and keep those the checkers accept.
 
     Returns (accepted int32[k, n], k). Chunks that fail to grow to n voxels count as rejected.
@@ -317,7 +350,8 @@ def sample_and_check(nbr, ray, line, n_lines, coords, index, labels, piece, n, n
         return accepted[:0], 0
     n_vox = labels.shape[0]
     in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape)
+        n_vox, n_lines, piece + 1, index.shape
+    )
     front_mark = np.zeros(n_vox, np.int64)
     front = np.empty(n_vox, np.int32)
     chunk = np.empty(n, np.int32)
@@ -326,8 +360,28 @@ def sample_and_check(nbr, ray, line, n_lines, coords, index, labels, piece, n, n
         stamp = s + 1
         if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, stamp):
             continue
-        verdict = _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
-                         False, in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp)
+        verdict = _check(
+            chunk,
+            n,
+            piece,
+            nbr,
+            line,
+            coords,
+            index,
+            part_of,
+            ray_r,
+            base,
+            removal_path,
+            False,
+            in_chunk,
+            mark,
+            queue,
+            line_count,
+            counts,
+            visited,
+            off_queue,
+            stamp,
+        )
         if verdict == ALL_CHECKS:
             accepted[k, :] = chunk
             k += 1
@@ -340,15 +394,36 @@ def check_chunks(nbr, ray, line, n_lines, coords, index, labels, piece, chunks, 
     part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
     n_vox = labels.shape[0]
     in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape)
+        n_vox, n_lines, piece + 1, index.shape
+    )
     out = np.zeros(chunks.shape[0], np.int32)
     n = chunks.shape[1]
     for s in range(chunks.shape[0]):
         stamp = s + 1
         for j in range(n):
             in_chunk[chunks[s, j]] = stamp
-        out[s] = _check(chunks[s], n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
-                        True, in_chunk, mark, queue, line_count, counts, visited, off_queue, stamp)
+        out[s] = _check(
+            chunks[s],
+            n,
+            piece,
+            nbr,
+            line,
+            coords,
+            index,
+            part_of,
+            ray_r,
+            base,
+            removal_path,
+            True,
+            in_chunk,
+            mark,
+            queue,
+            line_count,
+            counts,
+            visited,
+            off_queue,
+            stamp,
+        )
     return out
 
 
@@ -396,8 +471,22 @@ def _seen(out, k, chunk, n):
 
 
 @njit(cache=True, nogil=True)
-def node_candidates(nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples, max_candidates,
-                    removal_path, seed, out):
+def node_candidates(
+    nbr,
+    ray,
+    line,
+    n_lines,
+    coords,
+    index,
+    labels,
+    piece,
+    n,
+    num_samples,
+    max_candidates,
+    removal_path,
+    seed,
+    out,
+):
     """A node's candidate actions into `out` [>= max_candidates, n]: the first `max_candidates` distinct
     accepted chunks (sorted voxel numbers) among at most `num_samples` raw samples, in sampling order.
     Returns (candidates found, raw samples drawn)."""
@@ -407,7 +496,8 @@ def node_candidates(nbr, ray, line, n_lines, coords, index, labels, piece, n, nu
         return 0, 0
     n_vox = labels.shape[0]
     in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape)
+        n_vox, n_lines, piece + 1, index.shape
+    )
     front_mark = np.zeros(n_vox, np.int64)
     front = np.empty(n_vox, np.int32)
     chunk = np.empty(n, np.int32)
@@ -417,8 +507,28 @@ def node_candidates(nbr, ray, line, n_lines, coords, index, labels, piece, n, nu
         s += 1
         if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
             continue
-        verdict = _check(chunk, n, piece, nbr, line, coords, index, part_of, ray_r, base, removal_path,
-                         False, in_chunk, mark, queue, line_count, counts, visited, off_queue, s)
+        verdict = _check(
+            chunk,
+            n,
+            piece,
+            nbr,
+            line,
+            coords,
+            index,
+            part_of,
+            ray_r,
+            base,
+            removal_path,
+            False,
+            in_chunk,
+            mark,
+            queue,
+            line_count,
+            counts,
+            visited,
+            off_queue,
+            s,
+        )
         if verdict != ALL_CHECKS:
             continue
         _insertion_sort(chunk, n)
@@ -429,8 +539,21 @@ def node_candidates(nbr, ray, line, n_lines, coords, index, labels, piece, n, nu
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def candidates_many(nbr, ray, line, n_lines, coords, index, labels, pieces, n, num_samples, max_candidates,
-                    removal_path, seeds):
+def candidates_many(
+    nbr,
+    ray,
+    line,
+    n_lines,
+    coords,
+    index,
+    labels,
+    pieces,
+    n,
+    num_samples,
+    max_candidates,
+    removal_path,
+    seeds,
+):
     """`node_candidates` for B nodes at once, one thread per node: labels int16[B, N], pieces and seeds
     int64[B] -> (candidates int32[B, max_candidates, n], counts int32[B], raw samples drawn int64[B]).
     Each node seeds its own thread's generator, so the result does not depend on the thread count."""
@@ -439,8 +562,22 @@ def candidates_many(nbr, ray, line, n_lines, coords, index, labels, pieces, n, n
     found = np.zeros(batch, np.int32)
     drawn = np.zeros(batch, np.int64)
     for b in prange(batch):
-        k, s = node_candidates(nbr, ray, line, n_lines, coords, index, labels[b], pieces[b], n, num_samples,
-                               max_candidates, removal_path, seeds[b], out[b])
+        k, s = node_candidates(
+            nbr,
+            ray,
+            line,
+            n_lines,
+            coords,
+            index,
+            labels[b],
+            pieces[b],
+            n,
+            num_samples,
+            max_candidates,
+            removal_path,
+            seeds[b],
+            out[b],
+        )
         found[b] = k
         drawn[b] = s
     return out, found, drawn

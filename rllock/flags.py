@@ -27,9 +27,13 @@ def field_docs(cls: type) -> dict[str, str]:
     body = tree.body[0].body  # type: ignore[attr-defined]
     docs = {}
     for node, after in zip(body, body[1:]):
-        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
-                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and isinstance(after, ast.Expr)
+            and isinstance(after.value, ast.Constant)
+            and isinstance(after.value.value, str)
+        ):
             docs[node.target.id] = " ".join(after.value.value.split())
     return docs
 
@@ -59,8 +63,13 @@ def _int_tuple(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
-def add_flags(parser: argparse.ArgumentParser, cls: type, *, required_unless: str | None = None,
-              choices: dict[str, tuple[str, ...]] | None = None) -> None:
+def add_flags(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    *,
+    required_unless: str | None = None,
+    choices: dict[str, tuple[str, ...]] | None = None,
+) -> None:
     """One flag per leaf field of `cls`. Fields without a default get `default=None` and the note
     'required unless `required_unless`' (checked by the caller)."""
     seen: set[str] = set()
@@ -72,20 +81,29 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, *, required_unless: st
         flag = "--" + name.replace("_", "-")
         doc = field_docs(owner).get(name, "")
         kind = _leaf_type(owner, name)
-        default = f.default if f.default is not dataclasses.MISSING else (
-            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        default = (
+            f.default
+            if f.default is not dataclasses.MISSING
+            else (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        )
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             note = f" (required unless {required_unless})" if required_unless else " (required)"
             parser.add_argument(flag, type=kind, default=None, help=doc + note)
         elif kind is bool:
             parser.add_argument(flag, default=default, action=argparse.BooleanOptionalAction, help=doc)
         elif typing.get_origin(kind) is tuple:
-            parser.add_argument(flag, type=_int_tuple, default=default,
-                                help=f"{doc} Comma-separated (default {','.join(map(str, default))}).")
+            assert isinstance(default, tuple)
+            parser.add_argument(
+                flag,
+                type=_int_tuple,
+                default=default,
+                help=f"{doc} Comma-separated (default {','.join(map(str, default))}).",
+            )
         else:
             shown = "" if default is None else f" (default {default})"
-            parser.add_argument(flag, type=kind, default=default, choices=(choices or {}).get(name),
-                                help=doc + shown)
+            parser.add_argument(
+                flag, type=kind, default=default, choices=(choices or {}).get(name), help=doc + shown
+            )
 
 
 def from_flags(cls: type, args: argparse.Namespace) -> Any:

@@ -60,8 +60,14 @@ def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
 
 def untrained_like(policy: Policy, seed: int) -> Policy:
     """The same network and search with freshly initialised weights: the baseline learning must beat."""
-    return Policy(policy.task, policy.net, policy.mcts, init_params(policy.net, jax.random.PRNGKey(seed)),
-                  f"untrained (seed {seed})", 0)
+    return Policy(
+        policy.task,
+        policy.net,
+        policy.mcts,
+        init_params(policy.net, jax.random.PRNGKey(seed)),
+        f"untrained (seed {seed})",
+        0,
+    )
 
 
 def searcher_for(policy: Policy, batch: int) -> Searcher:
@@ -90,14 +96,34 @@ class Collector:
     """Keeps the distinct valid assemblies of finished rounds, up to `count`, and writes each (verified)
     under `out` when given."""
 
-    def __init__(self, policy: Policy, *, count: int, batch: int, seed: int, out: Path | None,
-                 picture: PictureWriter | None, progress: bool):
-        self.policy, self.count, self.batch, self.seed, self.out, self.picture = policy, count, batch, seed, out, picture
+    def __init__(
+        self,
+        policy: Policy,
+        *,
+        count: int,
+        batch: int,
+        seed: int,
+        out: Path | None,
+        picture: PictureWriter | None,
+        progress: bool,
+    ):
+        self.policy, self.count, self.batch, self.seed, self.out, self.picture = (
+            policy,
+            count,
+            batch,
+            seed,
+            out,
+            picture,
+        )
         self.seen: set[bytes] = set()
         self.episodes = 0
         task = policy.task
-        self.bar = tqdm(total=count, desc=f"generate {task.shape_name} K={task.pieces}", unit="assembly",
-                        disable=None if progress else True)
+        self.bar = tqdm(
+            total=count,
+            desc=f"generate {task.shape_name} K={task.pieces}",
+            unit="assembly",
+            disable=None if progress else True,
+        )
 
     @property
     def done(self) -> bool:
@@ -116,12 +142,22 @@ class Collector:
             self.seen.add(key)
             self.bar.update(1)
             if self.out is not None:
-                write_assembly(self.out / f"assembly_{len(self.seen):03d}", task.topology.to_grid(labels),
-                               removal=task.removal, shape=task.shape_name,
-                               method={"name": "rl-lock", "checkpoint": self.policy.source, "step": self.policy.step,
-                                       "batch": self.batch, **asdict(self.policy.mcts)},
-                               seed=self.seed, timings={"batch_seconds": round(batch_seconds, 3)},
-                               picture=self.picture)
+                write_assembly(
+                    self.out / f"assembly_{len(self.seen):03d}",
+                    task.topology.to_grid(labels),
+                    removal=task.removal,
+                    shape=task.shape_name,
+                    method={
+                        "name": "rl-lock",
+                        "checkpoint": self.policy.source,
+                        "step": self.policy.step,
+                        "batch": self.batch,
+                        **asdict(self.policy.mcts),
+                    },
+                    seed=self.seed,
+                    timings={"batch_seconds": round(batch_seconds, 3)},
+                    picture=self.picture,
+                )
 
     def result(self, seconds: float) -> GenerateResult:
         self.bar.close()
@@ -129,13 +165,24 @@ class Collector:
         return GenerateResult(valid, self.episodes, seconds, seconds / valid if valid else None)
 
 
-def generate(policy: Policy, *, count: int, batch: int, time_limit: float, seed: int, out: Path | None = None,
-             picture: PictureWriter | None = None, progress: bool = True) -> GenerateResult:
+def generate(
+    policy: Policy,
+    *,
+    count: int,
+    batch: int,
+    time_limit: float,
+    seed: int,
+    out: Path | None = None,
+    picture: PictureWriter | None = None,
+    progress: bool = True,
+) -> GenerateResult:
     """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
     seconds (a round that has started finishes), in this process."""
     start = time.perf_counter()
     searcher = searcher_for(policy, batch)
-    collector = Collector(policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress)
+    collector = Collector(
+        policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
+    )
     round_ = 0
     while not collector.done and time.perf_counter() - start < time_limit:
         t0 = time.perf_counter()

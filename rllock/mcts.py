@@ -65,8 +65,13 @@ class NodeStore:
         live = [i for i, s in enumerate(states) if not is_solved(self.task, s)]
         if live:
             start = time.perf_counter()
-            found, _ = candidates_many(self.task, [states[i] for i in live], seeds[live],
-                                       num_samples=self.config.raw_samples, max_candidates=self.config.candidates)
+            found, _ = candidates_many(
+                self.task,
+                [states[i] for i in live],
+                seeds[live],
+                num_samples=self.config.raw_samples,
+                max_candidates=self.config.candidates,
+            )
             self.times.sampling += time.perf_counter() - start
             for i, c in zip(live, found):
                 cands[i] = c
@@ -115,7 +120,11 @@ class NodeStore:
         return out
 
     def _expand(self, nodes: list[int], actions: list[int]):
-        moves = [r for r, (n, a) in enumerate(zip(nodes, actions)) if not self.terminal(n) and a < len(self.cands[n])]
+        moves = [
+            r
+            for r, (n, a) in enumerate(zip(nodes, actions))
+            if not self.terminal(n) and a < len(self.cands[n])
+        ]
         kids = np.array(nodes, np.int32)
         kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
         reward = np.zeros(len(nodes), np.float32)
@@ -171,18 +180,29 @@ class Searcher:
 
         def recurrent_fn(params, rng_key, action, embedding):
             del rng_key
-            kids, reward, discount, cap, planes, chunks, valid = io_callback(host_expand, shapes, embedding, action)
+            kids, reward, discount, cap, planes, chunks, valid = io_callback(
+                host_expand, shapes, embedding, action
+            )
             logits, value = evaluate(params, planes, chunks, valid)
-            out = mctx.RecurrentFnOutput(reward=reward, discount=discount, prior_logits=logits,
-                                         value=bounded_value(value, reward, discount, cap))
+            out = mctx.RecurrentFnOutput(
+                reward=reward,
+                discount=discount,
+                prior_logits=logits,
+                value=bounded_value(value, reward, discount, cap),
+            )
             return out, kids
 
         def search(params, key, roots, planes, chunks, valid):
             logits, value = evaluate(params, planes, chunks, valid)
             root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
             out = mctx.gumbel_muzero_policy(
-                params, key, root, recurrent_fn, num_simulations=config.simulations,
-                invalid_actions=~valid, max_num_considered_actions=config.max_considered,
+                params,
+                key,
+                root,
+                recurrent_fn,
+                num_simulations=config.simulations,
+                invalid_actions=~valid,
+                max_num_considered_actions=config.max_considered,
                 gumbel_scale=config.gumbel_scale,
             )
             return out.action, out.action_weights, value
@@ -196,9 +216,13 @@ class Searcher:
         planes, chunks, valid = store.features(roots)
         # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
         valid[~valid.any(axis=1), 0] = True
-        action, weights, value = self._search(params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid)
+        action, weights, value = self._search(
+            params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid
+        )
         action, weights, value = np.asarray(action), np.asarray(weights), np.asarray(value)
-        store.times.network += time.perf_counter() - start - (store.times.sampling + store.times.host - before)
+        store.times.network += (
+            time.perf_counter() - start - (store.times.sampling + store.times.host - before)
+        )
         return action, weights, value
 
 
@@ -216,8 +240,9 @@ class Episode:
     final: State  # the last state reached
 
 
-def play(searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int,
-         times: TimeSplit | None = None) -> list[Episode]:
+def play(
+    searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int, times: TimeSplit | None = None
+) -> list[Episode]:
     """`searcher.batch` episodes in lockstep from the empty state; each decision takes the search's
     action. `times`, when given, accumulates where the time went."""
     batch = searcher.batch
@@ -257,4 +282,3 @@ def _episode(task: Task, store: NodeStore, steps: list[tuple[int, np.ndarray]], 
     # Each step's chunk was accepted (reward 1/K), so z_s = (placed at the end - placed at s) / K.
     z = ((final.placed - placed) / task.pieces).astype(np.float32)
     return Episode(labels, placed, chunks, num_valid, pi, z, is_solved(task, final), final)
-

@@ -69,11 +69,12 @@ def _boxes(cells: np.ndarray, inset: float) -> list[tuple[np.ndarray, np.ndarray
 def _blocks(cells: np.ndarray) -> dict[tuple[int, int, int], int]:
     """For each block shape (1 or 2 voxels along each axis), how many such blocks the piece fills."""
     filled = {tuple(int(c) for c in v) for v in cells}
-    counts = {}
-    for off in itertools.product((0, 1), repeat=3):
-        deltas = list(itertools.product(*[range(o + 1) for o in off]))
-        counts[off] = sum(all((v[0] + dx, v[1] + dy, v[2] + dz) in filled for dx, dy, dz in deltas)
-                          for v in filled)
+    counts: dict[tuple[int, int, int], int] = {}
+    for ox, oy, oz in itertools.product((0, 1), repeat=3):
+        deltas = list(itertools.product(range(ox + 1), range(oy + 1), range(oz + 1)))
+        counts[ox, oy, oz] = sum(
+            all((v[0] + dx, v[1] + dy, v[2] + dz) in filled for dx, dy, dz in deltas) for v in filled
+        )
     return counts
 
 
@@ -108,8 +109,9 @@ def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) ->
     if voxel_size <= 0:
         raise RLLockError(f"the voxel size must be positive, got {voxel_size}")
     if not 0 <= gap < voxel_size:
-        raise RLLockError(f"the gap must be at least 0 and smaller than the voxel size {voxel_size}, "
-                          f"got {gap}")
+        raise RLLockError(
+            f"the gap must be at least 0 and smaller than the voxel size {voxel_size}, got {gap}"
+        )
     if len(cells) == 0:
         raise RLLockError("cannot mesh a piece with no voxels")
     inset = gap / 2 / voxel_size
@@ -144,8 +146,12 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
 
 
 def _solid(mesh: trimesh.Trimesh, path: Path) -> m3.Manifold:
-    solid = m3.Manifold(m3.Mesh(vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
-                                tri_verts=np.asarray(mesh.faces, dtype=np.uint32)))
+    solid = m3.Manifold(
+        m3.Mesh(
+            vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
+            tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
+        )
+    )
     if solid.status() != m3.Error.NoError:
         raise RLLockError(f"mesh {path} is not a closed manifold surface ({solid.status().name})")
     return solid
@@ -168,8 +174,9 @@ def _sample_inside(solid: m3.Manifold, resolution: int) -> np.ndarray:
     origin = (lo + hi) / 2 - dims * pitch / 2
     # A tiny irrational nudge keeps sample points off faces that lie exactly halfway between grid planes,
     # where inside and outside would be a tie.
-    centres = [origin[a] + (np.arange(dims[a]) + 0.5 + 1e-4 * np.sqrt((2, 3, 5)[a])) * pitch
-               for a in range(3)]
+    centres = [
+        origin[a] + (np.arange(dims[a]) + 0.5 + 1e-4 * np.sqrt((2, 3, 5)[a])) * pitch for a in range(3)
+    ]
     points = np.stack(np.meshgrid(centres[0], centres[1], indexing="ij"), axis=-1).reshape(-1, 2)
     grid = np.zeros(tuple(dims), dtype=bool)
     for iz, z in enumerate(centres[2]):
@@ -189,7 +196,10 @@ def largest_component(grid: np.ndarray, name: str) -> np.ndarray:
     keep = parts == int(np.argmax(sizes)) + 1
     log.warning(
         "%s: kept the largest of %d connected parts, dropped %d of %d voxels",
-        name, count, int(grid.sum() - keep.sum()), int(grid.sum()),
+        name,
+        count,
+        int(grid.sum() - keep.sum()),
+        int(grid.sum()),
     )
     return keep
 

@@ -18,14 +18,13 @@ features through a small MLP and a sigmoid, since the target (the cumulative rew
 
 from __future__ import annotations
 
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rllock.env import Task
 from rllock.config import NetConfig
+from rllock.env import Task
 from rllock.errors import RLLockError
 
 PLANES = 7
@@ -39,8 +38,10 @@ def fit_canvas(task: Task, config: NetConfig) -> NetConfig:
     canvas = fitted.canvas
     assert canvas is not None
     if max(task.topology.dims) > canvas:
-        raise RLLockError(f"shape {task.shape_name} {task.topology.dims} does not fit the {canvas}^3 canvas; "
-                          f"use a larger --canvas")
+        raise RLLockError(
+            f"shape {task.shape_name} {task.topology.dims} does not fit the {canvas}^3 canvas; "
+            f"use a larger --canvas"
+        )
     if canvas % config.levels_step() != 0:
         raise RLLockError(f"the canvas side must be a multiple of {config.levels_step()}, got {canvas}")
     return fitted
@@ -90,8 +91,12 @@ def conv3(x: jax.Array, kernel: jax.Array) -> jax.Array:
     d, h, w, c = x.shape[1:]
     f = kernel.shape[-1]
     yz = jnp.pad(x, ((0, 0), (0, 0), (1, 1), (1, 1), (0, 0)))
-    columns = jnp.concatenate([yz[:, :, j : j + h, k : k + w, :] for j in range(3) for k in range(3)], axis=-1)
-    by_dx = (columns @ jnp.transpose(kernel, (1, 2, 3, 0, 4)).reshape(9 * c, 3 * f)).reshape(*x.shape[:4], 3, f)
+    columns = jnp.concatenate(
+        [yz[:, :, j : j + h, k : k + w, :] for j in range(3) for k in range(3)], axis=-1
+    )
+    by_dx = (columns @ jnp.transpose(kernel, (1, 2, 3, 0, 4)).reshape(9 * c, 3 * f)).reshape(
+        *x.shape[:4], 3, f
+    )
     padded = jnp.pad(by_dx, ((0, 0), (1, 1), (0, 0), (0, 0), (0, 0), (0, 0)))
     return sum(padded[:, i : i + d, :, :, i] for i in range(3))
 

@@ -15,6 +15,12 @@ import numpy as np
 Voxel = tuple[int, int, int]
 Part = frozenset[Voxel]
 
+
+def voxel(xyz) -> Voxel:
+    """A voxel of a grid coordinate row (numpy integers become ints)."""
+    return int(xyz[0]), int(xyz[1]), int(xyz[2])
+
+
 DIRECTIONS: tuple[Voxel, ...] = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 DIRECTION_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")
 REMOVAL_MODES = ("straight", "path")
@@ -167,16 +173,12 @@ def sample_chunk(
     if piece == 1:
         seeds = sorted(remaining)
     else:
-        seeds = sorted(
-            v for v in remaining if any(labels.get(shift(v, d)) == piece - 1 for d in DIRECTIONS)
-        )
+        seeds = sorted(v for v in remaining if any(labels.get(shift(v, d)) == piece - 1 for d in DIRECTIONS))
     if not seeds:
         return None
     chunk = [seeds[rng.integers(len(seeds))]]
     while len(chunk) < size:
-        frontier = sorted(
-            {shift(v, d) for v in chunk for d in DIRECTIONS} & remaining - set(chunk)
-        )
+        frontier = sorted({shift(v, d) for v in chunk for d in DIRECTIONS} & remaining - set(chunk))
         if not frontier:
             return None
         chunk.append(frontier[rng.integers(len(frontier))])

@@ -108,7 +108,9 @@ def disassembly_steps(verdict: Verdict, frames_per_move: int | None = None) -> l
             frames = 1 if frames_per_move is None else min(move["steps"], frames_per_move)
             for f in range(1, frames + 1):
                 offsets[piece - 1] = start + vec * move["steps"] * f / frames
-                steps.append(Step(f"{name}: {move['direction']} {move['steps']}", offsets.copy(), present.copy()))
+                steps.append(
+                    Step(f"{name}: {move['direction']} {move['steps']}", offsets.copy(), present.copy())
+                )
         present[piece - 1] = False
     steps.append(Step(f"piece {k} stays", offsets.copy(), present.copy()))
     return steps
@@ -125,7 +127,9 @@ def _scene_bounds(pieces: list[Piece], steps: list[Step]) -> tuple[np.ndarray, n
     return lo, hi
 
 
-def _collection(pieces: list[Piece], offsets: np.ndarray, shown: np.ndarray, colors: np.ndarray) -> Poly3DCollection:
+def _collection(
+    pieces: list[Piece], offsets: np.ndarray, shown: np.ndarray, colors: np.ndarray
+) -> Poly3DCollection:
     verts, faces, edges = [], [], []
     for i, (piece, off) in enumerate(zip(pieces, offsets)):
         if not shown[i]:
@@ -135,8 +139,9 @@ def _collection(pieces: list[Piece], offsets: np.ndarray, shown: np.ndarray, col
         # Black edges mark the key. (Line widths cannot do it: mplot3d depth-sorts the face and edge
         # colours of a collection but not its line widths.)
         edges += [(0, 0, 0) if i == 0 else (0.35, 0.35, 0.35)] * len(piece.quads)
-    return Poly3DCollection(np.concatenate(verts), facecolors=np.concatenate(faces), edgecolors=edges,
-                            linewidths=0.6)
+    return Poly3DCollection(
+        np.concatenate(verts), facecolors=np.concatenate(faces), edgecolors=edges, linewidths=0.6
+    )
 
 
 def _axes(fig: Figure, position: tuple[int, int, int], lo: np.ndarray, hi: np.ndarray, title: str) -> Axes3D:
@@ -153,7 +158,9 @@ def _axes(fig: Figure, position: tuple[int, int, int], lo: np.ndarray, hi: np.nd
 
 
 def order_caption(k: int) -> str:
-    order = " → ".join(["1 (key)", *[str(i) for i in range(2, k)]]) if k <= 8 else f"1 (key) → 2 → … → {k - 1}"
+    order = (
+        " → ".join(["1 (key)", *[str(i) for i in range(2, k)]]) if k <= 8 else f"1 (key) → 2 → … → {k - 1}"
+    )
     return f"K = {k} pieces; removal order {order}; piece {k} stays"
 
 
@@ -185,8 +192,15 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
 
 
 def _label(ax: Axes3D, at: np.ndarray, text: str, key: bool) -> None:
-    ax.text(*at, text, fontsize=8, ha="center", va="center", fontweight="bold" if key else "normal",
-            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="black" if key else "none", alpha=0.8))
+    ax.text(
+        *at,
+        text,
+        fontsize=8,
+        ha="center",
+        va="center",
+        fontweight="bold" if key else "normal",
+        bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="black" if key else "none", alpha=0.8),
+    )
 
 
 def write_picture(labels: np.ndarray, verdict: Verdict, out_dir: Path) -> None:
@@ -247,37 +261,82 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
         for (vertices, _), off, shown in zip(meshes, step.offsets, step.present):
             # A removed piece collapses to one point: its triangles have no area and draw nothing.
             at = vertices + off if shown else np.broadcast_to(vertices[0], vertices.shape)
-            out.append({"type": "mesh3d", "x": _typed(at[:, 0]), "y": _typed(at[:, 1]), "z": _typed(at[:, 2])})
+            out.append(
+                {"type": "mesh3d", "x": _typed(at[:, 0]), "y": _typed(at[:, 1]), "z": _typed(at[:, 2])}
+            )
         return out
 
     names = [f"piece {i + 1}" + (" (key)" if i == 0 else "") for i in range(k)]
     traces = [
-        {**xyz, "i": _typed(tri[:, 0], "i4"), "j": _typed(tri[:, 1], "i4"), "k": _typed(tri[:, 2], "i4"),
-         "color": _hex(colors[i]),
-         "flatshading": True, "name": names[i], "showlegend": True, "hovertemplate": names[i] + "<extra></extra>"}
+        {
+            **xyz,
+            "i": _typed(tri[:, 0], "i4"),
+            "j": _typed(tri[:, 1], "i4"),
+            "k": _typed(tri[:, 2], "i4"),
+            "color": _hex(colors[i]),
+            "flatshading": True,
+            "name": names[i],
+            "showlegend": True,
+            "hovertemplate": names[i] + "<extra></extra>",
+        }
         for i, (xyz, (_, tri)) in enumerate(zip(coords(steps[0]), meshes))
     ]
     summary = f"<br><sup>{order_caption(k)}, {verdict.removal} removal</sup>"
     titles = [f"step {s}/{len(steps) - 1}: {step.caption}{summary}" for s, step in enumerate(steps)]
     # Every frame sets every piece, so that the slider may jump to any step from any other.
-    frames = [{"name": str(s), "data": coords(step), "traces": list(range(k)), "layout": {"title": {"text": t}}}
-              for s, (step, t) in enumerate(zip(steps, titles))]
+    frames = [
+        {"name": str(s), "data": coords(step), "traces": list(range(k)), "layout": {"title": {"text": t}}}
+        for s, (step, t) in enumerate(zip(steps, titles))
+    ]
     still = {"mode": "immediate", "frame": {"duration": 0, "redraw": True}, "transition": {"duration": 0}}
     play = {**still, "fromcurrent": True, "frame": {"duration": 700, "redraw": True}}
-    slider = {"active": 0, "x": 0.12, "len": 0.88, "y": 0, "pad": {"t": 10, "b": 10},
-              "currentvalue": {"prefix": "step "},
-              "steps": [{"method": "animate", "label": str(s), "args": [[str(s)], still]} for s in range(len(steps))]}
-    buttons = {"type": "buttons", "direction": "left", "x": 0.12, "y": 0, "xanchor": "right", "yanchor": "top",
-               "pad": {"t": 45, "r": 10},
-               "buttons": [{"label": "▶", "method": "animate", "args": [None, play]},
-                           {"label": "❚❚", "method": "animate", "args": [[None], still]}]}
+    slider = {
+        "active": 0,
+        "x": 0.12,
+        "len": 0.88,
+        "y": 0,
+        "pad": {"t": 10, "b": 10},
+        "currentvalue": {"prefix": "step "},
+        "steps": [
+            {"method": "animate", "label": str(s), "args": [[str(s)], still]} for s in range(len(steps))
+        ],
+    }
+    buttons = {
+        "type": "buttons",
+        "direction": "left",
+        "x": 0.12,
+        "y": 0,
+        "xanchor": "right",
+        "yanchor": "top",
+        "pad": {"t": 45, "r": 10},
+        "buttons": [
+            {"label": "▶", "method": "animate", "args": [None, play]},
+            {"label": "❚❚", "method": "animate", "args": [[None], still]},
+        ],
+    }
     span = hi - lo
-    scene = {f"{a}axis": {"range": [float(lo[n]), float(hi[n])], "autorange": False, "title": {"text": a}}
-             for n, a in enumerate("xyz")}
-    scene.update(aspectmode="manual", aspectratio={a: float(span[n] / span.max()) for n, a in enumerate("xyz")},
-                 camera={"eye": {"x": 1.0, "y": -1.4, "z": 0.9}})
-    layout = {"title": {"text": titles[0], "x": 0.02, "font": {"size": 16}}, "scene": scene, "sliders": [slider],
-              "updatemenus": [buttons], "margin": {"l": 0, "r": 0, "t": 70, "b": 0}}
+    scene = {
+        f"{a}axis": {"range": [float(lo[n]), float(hi[n])], "autorange": False, "title": {"text": a}}
+        for n, a in enumerate("xyz")
+    }
+    scene.update(
+        aspectmode="manual",
+        aspectratio={a: float(span[n] / span.max()) for n, a in enumerate("xyz")},
+        camera={"eye": {"x": 1.0, "y": -1.4, "z": 0.9}},
+    )
+    layout = {
+        "title": {"text": titles[0], "x": 0.02, "font": {"size": 16}},
+        "scene": scene,
+        "sliders": [slider],
+        "updatemenus": [buttons],
+        "margin": {"l": 0, "r": 0, "t": 70, "b": 0},
+    }
     # Built as plain data, not graph objects: plotly's per-array validation takes seconds on big assemblies.
-    plotly.io.write_html({"data": traces, "layout": layout, "frames": frames}, path, validate=False,
-                         include_plotlyjs=True, full_html=True, auto_play=False)
+    plotly.io.write_html(
+        {"data": traces, "layout": layout, "frames": frames},
+        path,
+        validate=False,
+        include_plotlyjs=True,
+        full_html=True,
+        auto_play=False,
+    )

@@ -182,7 +182,7 @@ def crop(grid: np.ndarray) -> np.ndarray:
 
 def is_connected(grid: np.ndarray) -> bool:
     """Whether the filled voxels of a boolean grid form one 6-connected solid."""
-    return reference.is_connected(tuple(int(c) for c in v) for v in np.argwhere(grid))
+    return reference.is_connected(reference.voxel(v) for v in np.argwhere(grid))
 
 
 def validate_shape(grid: np.ndarray, name: str) -> np.ndarray:

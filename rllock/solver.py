@@ -16,7 +16,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rllock.env import State, Task, apply_chunk, assembly_key, distinct_subset, final_labels, initial_state, sample_accepted
+from rllock.env import (
+    State,
+    Task,
+    apply_chunk,
+    assembly_key,
+    distinct_subset,
+    final_labels,
+    initial_state,
+    sample_accepted,
+)
 
 
 @dataclass(frozen=True)
@@ -49,8 +58,9 @@ def luby(i: int) -> int:
     return luby(i - (1 << (k - 1)) + 1)
 
 
-def _dfs(task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float,
-         target: int):
+def _dfs(
+    task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float, target: int
+):
     """One restart: DFS from the root for at most `budget` expansions until a state with `target`
     placed pieces. Returns (that state or None, expansions used)."""
     expansions = 0
@@ -92,7 +102,9 @@ def _dfs(task: Task, rng: np.random.Generator, config: SearchConfig, budget: int
     return None, expansions
 
 
-def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()) -> Iterator[Found]:
+def search(
+    task: Task, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
+) -> Iterator[Found]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit. Same seed, same sequence."""
     rng = np.random.default_rng(seed)
@@ -102,8 +114,9 @@ def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = S
     last, used, restart = start, 0, 0
     while time.monotonic() < deadline:
         restart += 1
-        state, expansions = _dfs(task, rng, config, config.restart_base * luby(restart), deadline,
-                                 task.pieces - 1)
+        state, expansions = _dfs(
+            task, rng, config, config.restart_base * luby(restart), deadline, task.pieces - 1
+        )
         used += expansions
         if state is None:
             continue
@@ -117,8 +130,9 @@ def search(task: Task, *, seed: int, time_limit: float, config: SearchConfig = S
         last, used, restart = now, 0, 0
 
 
-def reach_depth(task: Task, placed: int, *, seed: int, time_limit: float,
-                config: SearchConfig = SearchConfig()) -> State | None:
+def reach_depth(
+    task: Task, placed: int, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
+) -> State | None:
     """A valid state with `placed` pieces (a seeded mid-episode state), or None within the time limit."""
     rng = np.random.default_rng(seed)
     deadline = time.monotonic() + time_limit
@@ -131,8 +145,14 @@ def reach_depth(task: Task, placed: int, *, seed: int, time_limit: float,
     return None
 
 
-def solve(task: Task, *, count: int = 1, time_limit: float = 60.0, seed: int = 0,
-          config: SearchConfig = SearchConfig()) -> list[np.ndarray]:
+def solve(
+    task: Task,
+    *,
+    count: int = 1,
+    time_limit: float = 60.0,
+    seed: int = 0,
+    config: SearchConfig = SearchConfig(),
+) -> list[np.ndarray]:
     """Up to `count` distinct assemblies of `task` found by the search within `time_limit` seconds, as
     label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier."""
     from rllock.verifier import verify_labels

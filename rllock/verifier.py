@@ -88,7 +88,7 @@ def verify_labels(labels: np.ndarray, removal: str = "straight") -> Verdict:
         raise RLLockError(f"unknown removal mode {removal!r}: use one of {', '.join(ref.REMOVAL_MODES)}")
     labels = np.asarray(labels)
     k = validate_labels(labels)
-    cells = {j: frozenset(tuple(int(c) for c in v) for v in np.argwhere(labels == j)) for j in range(1, k + 1)}
+    cells = {j: frozenset(ref.voxel(v) for v in np.argwhere(labels == j)) for j in range(1, k + 1)}
     sizes = [len(cells[j]) for j in range(1, k + 1)]
     disassembly = []
     for i in range(1, k):

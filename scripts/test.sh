@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The test suite: installs what it needs, then runs pytest.
+# The test suite: installs what it needs, runs ruff (lint, format) and mypy (the core), then pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
@@ -9,4 +9,8 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
     || echo "could not install chromium; the HTML rendering test will be skipped" >&2
 fi
+# Lint, format and type checks first: a style or type error fails fast, before the 10-minute suite.
+.venv/bin/ruff check .
+.venv/bin/ruff format --check .
+.venv/bin/mypy
 exec .venv/bin/python -m pytest -q "$@"

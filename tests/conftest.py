@@ -23,6 +23,7 @@ def run_cli(*args: str, timeout: float = 300):
     """Run the installed `rllock` command in a subprocess: (exit code, stdout, stderr)."""
     import subprocess
 
-    proc = subprocess.run([sys.executable, "-m", "rllock.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rllock.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
     return proc.returncode, proc.stdout, proc.stderr

@@ -38,7 +38,9 @@ def random_valid_states(task: Task, rng: np.random.Generator, episodes: int):
         state = initial_state(task)
         while state.placed < task.pieces - 1:
             yield state
-            cands = candidates(task, state, seed=int(rng.integers(1 << 30)), num_samples=512, max_candidates=8)
+            cands = candidates(
+                task, state, seed=int(rng.integers(1 << 30)), num_samples=512, max_candidates=8
+            )
             if len(cands) == 0:
                 break
             state = apply_chunk(state, cands[rng.integers(len(cands))])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
 
 
@@ -19,18 +18,20 @@ def _files(tmp_path):
 
 @pytest.mark.parametrize(
     "args,needle",
-    [(["solve", "--shape", "teapot", "--pieces", "3"], "unknown shape"),
-     (["solve", "--shape", "{t}/missing.puz", "--pieces", "3"], "no such file"),
-     (["solve", "--shape", "{t}/malformed.puz", "--pieces", "3"], "malformed"),
-     (["solve", "--shape", "{t}/short.vol", "--pieces", "3"], "malformed"),
-     (["solve", "--shape", "{t}/empty.puz", "--pieces", "3"], "empty"),
-     (["solve", "--shape", "{t}/apart.puz", "--pieces", "2"], "not 6-connected"),
-     (["solve", "--shape", "{t}/flat.npy", "--pieces", "2"], "3-D"),
-     (["solve", "--shape", "cube3", "--pieces", "1"], "at least 2"),
-     (["solve", "--shape", "cube2", "--pieces", "9"], "larger than"),
-     (["solve", "--shape", "cube3", "--pieces", "3", "--count", "0"], "--count"),
-     (["verify", "{t}/bad.json"], "malformed"),
-     (["verify", "{t}/nothing.puz"], "no such file")],
+    [
+        (["solve", "--shape", "teapot", "--pieces", "3"], "unknown shape"),
+        (["solve", "--shape", "{t}/missing.puz", "--pieces", "3"], "no such file"),
+        (["solve", "--shape", "{t}/malformed.puz", "--pieces", "3"], "malformed"),
+        (["solve", "--shape", "{t}/short.vol", "--pieces", "3"], "malformed"),
+        (["solve", "--shape", "{t}/empty.puz", "--pieces", "3"], "empty"),
+        (["solve", "--shape", "{t}/apart.puz", "--pieces", "2"], "not 6-connected"),
+        (["solve", "--shape", "{t}/flat.npy", "--pieces", "2"], "3-D"),
+        (["solve", "--shape", "cube3", "--pieces", "1"], "at least 2"),
+        (["solve", "--shape", "cube2", "--pieces", "9"], "larger than"),
+        (["solve", "--shape", "cube3", "--pieces", "3", "--count", "0"], "--count"),
+        (["verify", "{t}/bad.json"], "malformed"),
+        (["verify", "{t}/nothing.puz"], "no such file"),
+    ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
     _files(tmp_path)
@@ -45,16 +46,24 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
 
 @pytest.mark.parametrize(
     "args,needle",
-    [(["train", "--shape", "cube4", "--pieces", "6", "--publish-every", "0"], "--publish-every must be positive"),
-     (["train", "--shape", "cube4", "--pieces", "6", "--validation-episodes", "0"], "--validation-episodes"),
-     (["train", "--shape", "cube6", "--pieces", "6", "--canvas", "4"], "does not fit"),
-     (["train", "--shape", "cube4", "--pieces", "6", "--success-fraction", "1.5"], "--success-fraction"),
-     (["train", "--pieces", "6"], "--shape and --pieces"),
-     (["train", "--resume", "{t}/nothing"], "cannot resume"),
-     (["generate", "--checkpoint", "{t}/nothing", "--out", "{t}/g"], "no such checkpoint"),
-     (["generate", "--checkpoint", "{t}", "--batch", "0", "--out", "{t}/g"], "--batch"),
-     (["bench", "selfplay", "--actors", "0"], "at least 1"),
-     (["bench", "checkers", "--piece", "30"], "between 1 and K-1")],
+    [
+        (
+            ["train", "--shape", "cube4", "--pieces", "6", "--publish-every", "0"],
+            "--publish-every must be positive",
+        ),
+        (
+            ["train", "--shape", "cube4", "--pieces", "6", "--validation-episodes", "0"],
+            "--validation-episodes",
+        ),
+        (["train", "--shape", "cube6", "--pieces", "6", "--canvas", "4"], "does not fit"),
+        (["train", "--shape", "cube4", "--pieces", "6", "--success-fraction", "1.5"], "--success-fraction"),
+        (["train", "--pieces", "6"], "--shape and --pieces"),
+        (["train", "--resume", "{t}/nothing"], "cannot resume"),
+        (["generate", "--checkpoint", "{t}/nothing", "--out", "{t}/g"], "no such checkpoint"),
+        (["generate", "--checkpoint", "{t}", "--batch", "0", "--out", "{t}/g"], "--batch"),
+        (["bench", "selfplay", "--actors", "0"], "at least 1"),
+        (["bench", "checkers", "--piece", "30"], "between 1 and K-1"),
+    ],
 )
 def test_bad_training_and_inference_input_is_one_line_and_exit_2(tmp_path, args, needle):
     args = [a.format(t=tmp_path) for a in args]
@@ -77,7 +86,10 @@ def test_train_switches_parse_both_ways():
 
     parser = build_parser()
     assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6"]).symmetries is True
-    assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6", "--no-symmetries"]).symmetries is False
+    assert (
+        parser.parse_args(["train", "--shape", "cube4", "--pieces", "6", "--no-symmetries"]).symmetries
+        is False
+    )
 
 
 def test_learning_ratio_and_its_bound_when_the_baseline_finds_nothing():

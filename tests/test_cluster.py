@@ -20,10 +20,38 @@ import yaml
 from cluster.train_job import job_args
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--shape", "box:4x4x2", "--pieces", "3", "--canvas", "4", "--features", "4,8", "--simulations", "8",
-        "--raw-samples", "256", "--candidates", "8", "--max-considered", "4", "--episodes-per-batch", "4",
-        "--min-buffer", "8", "--batch-size", "16", "--validation-episodes", "8", "--validate-minutes", "0.3",
-        "--checkpoint-minutes", "0.2", "--actors", "1"]
+TINY = [
+    "--shape",
+    "box:4x4x2",
+    "--pieces",
+    "3",
+    "--canvas",
+    "4",
+    "--features",
+    "4,8",
+    "--simulations",
+    "8",
+    "--raw-samples",
+    "256",
+    "--candidates",
+    "8",
+    "--max-considered",
+    "4",
+    "--episodes-per-batch",
+    "4",
+    "--min-buffer",
+    "8",
+    "--batch-size",
+    "16",
+    "--validation-episodes",
+    "8",
+    "--validate-minutes",
+    "0.3",
+    "--checkpoint-minutes",
+    "0.2",
+    "--actors",
+    "1",
+]
 
 
 def _free_port() -> int:
@@ -51,17 +79,45 @@ def test_training_on_a_ray_head_started_on_loopback(tmp_path):
     env = os.environ | {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_ADDRESS": ""}
     ray_bin = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
     head = subprocess.Popen(
-        [ray_bin, "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
-         "--include-dashboard=false", "--disable-usage-stats", "--block", f"--temp-dir={ray_tmp}"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True, env=env)
+        [
+            ray_bin,
+            "start",
+            "--head",
+            "--node-ip-address=127.0.0.1",
+            f"--port={port}",
+            "--num-cpus=2",
+            "--include-dashboard=false",
+            "--disable-usage-stats",
+            "--block",
+            f"--temp-dir={ray_tmp}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        env=env,
+    )
     try:
         time.sleep(8)
         assert head.poll() is None, head.stdout.read()
         logdir = tmp_path / "run"
         job = subprocess.run(
-            [sys.executable, str(ROOT / "cluster" / "train_job.py"), *TINY, "--minutes", "0.5",
-             "--logdir", str(logdir), "--address", f"127.0.0.1:{port}"],
-            capture_output=True, text=True, timeout=400, env=env)
+            [
+                sys.executable,
+                str(ROOT / "cluster" / "train_job.py"),
+                *TINY,
+                "--minutes",
+                "0.5",
+                "--logdir",
+                str(logdir),
+                "--address",
+                f"127.0.0.1:{port}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=400,
+            env=env,
+        )
         assert job.returncode == 0, job.stdout + job.stderr
         assert "train:" in job.stdout
         assert any(p.name.isdigit() for p in (logdir / "checkpoints").iterdir())

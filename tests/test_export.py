@@ -12,6 +12,7 @@ import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
+from conftest import run_cli
 
 from rllock.assembly import write_assembly
 from rllock.errors import RLLockError
@@ -21,8 +22,6 @@ from rllock.reference import DIRECTION_NAMES, DIRECTIONS
 from rllock.results_cli import add_commands
 from rllock.shapes import from_xfastest, read_puz_labels
 from rllock.verifier import verify_labels
-
-from conftest import run_cli
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +34,15 @@ def labels() -> np.ndarray:
 
 @pytest.fixture
 def saved(tmp_path, labels):
-    write_assembly(tmp_path / "asm", labels, removal="straight", shape="cube4", method={"name": "test"},
-                   seed=0, timings={})
+    write_assembly(
+        tmp_path / "asm",
+        labels,
+        removal="straight",
+        shape="cube4",
+        method={"name": "test"},
+        seed=0,
+        timings={},
+    )
     return tmp_path / "asm"
 
 
@@ -48,8 +54,21 @@ def _run(*argv: str) -> int:
 
 
 def test_obj_export_without_gap_fills_the_shape(tmp_path, saved, labels):
-    assert _run("export", str(saved), "--format", "obj", "--out", str(tmp_path / "obj"), "--voxel-size", "5",
-                "--gap", "0") == 0
+    assert (
+        _run(
+            "export",
+            str(saved),
+            "--format",
+            "obj",
+            "--out",
+            str(tmp_path / "obj"),
+            "--voxel-size",
+            "5",
+            "--gap",
+            "0",
+        )
+        == 0
+    )
     paths = sorted((tmp_path / "obj").glob("piece_*.obj"))
     assert [p.name for p in paths] == [f"piece_{i:02d}.obj" for i in range(1, 8)]
     # OBJ keeps vertex indices, so even pieces with edge-only self-contacts load closed.
@@ -61,8 +80,16 @@ def test_obj_export_without_gap_fills_the_shape(tmp_path, saved, labels):
 
 
 def test_stl_export_with_gap(tmp_path, saved, labels):
-    _run("export", str(saved / "assembly.json"), "--format", "stl", "--out", str(tmp_path / "stl"),
-         "--gap", "0.4")
+    _run(
+        "export",
+        str(saved / "assembly.json"),
+        "--format",
+        "stl",
+        "--out",
+        str(tmp_path / "stl"),
+        "--gap",
+        "0.4",
+    )
     paths = sorted((tmp_path / "stl").glob("piece_*.stl"))
     assert len(paths) == 7
     for k, path in enumerate(paths, start=1):
@@ -72,7 +99,8 @@ def test_stl_export_with_gap(tmp_path, saved, labels):
         # Every face moves in by gap/2, so each piece's box shrinks by gap/2 on each side.
         cells = np.argwhere(labels == k)
         np.testing.assert_allclose(
-            mesh.bounds, [cells.min(axis=0) * 10 + 0.2, (cells.max(axis=0) + 1) * 10 - 0.2], atol=1e-4)
+            mesh.bounds, [cells.min(axis=0) * 10 + 0.2, (cells.max(axis=0) + 1) * 10 - 0.2], atol=1e-4
+        )
 
 
 def _edge_only_pairs(labels: np.ndarray) -> dict[int, list[tuple[tuple[int, ...], tuple[int, ...]]]]:
@@ -98,8 +126,12 @@ def _edge_midpoint(v: tuple[int, ...], w: tuple[int, ...], size: float) -> np.nd
 
 
 def _solid(mesh: trimesh.Trimesh) -> m3.Manifold:
-    return m3.Manifold(m3.Mesh(vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
-                               tri_verts=np.asarray(mesh.faces, dtype=np.uint32)))
+    return m3.Manifold(
+        m3.Mesh(
+            vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
+            tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
+        )
+    )
 
 
 def test_default_stl_export_is_watertight_where_voxels_of_a_piece_touch_only_along_an_edge(tmp_path):
@@ -114,8 +146,15 @@ def test_default_stl_export_is_watertight_where_voxels_of_a_piece_touch_only_alo
         if len(pinched) >= 3:
             break
     assert len(pinched) >= 3, "no assembly with edge-only contacts in 20 seeds: the test would be vacuous"
-    write_assembly(tmp_path / "asm", labels, removal="straight", shape="cube4", method={"name": "test"},
-                   seed=seed, timings={})
+    write_assembly(
+        tmp_path / "asm",
+        labels,
+        removal="straight",
+        shape="cube4",
+        method={"name": "test"},
+        seed=seed,
+        timings={},
+    )
     code, _, err = run_cli("export", str(tmp_path / "asm"), "--format", "stl", "--out", str(tmp_path / "stl"))
     assert code == 0, err
     paths = sorted((tmp_path / "stl").glob("piece_*.stl"))
@@ -240,12 +279,15 @@ def test_xmpuzzle_of_a_multi_move_path_assembly(tmp_path, data):
     _check_xmpuzzle(tmp_path / "Cube_4x4x4_K9.xmpuzzle", labels)
     # Piece 3 needs two moves (path removal only): its level has the start, one move and the removal.
     level = _read_xmpuzzle(tmp_path / "Cube_4x4x4_K9.xmpuzzle").find(
-        "problems/problem/solutions/solution/separation/separation/separation")
+        "problems/problem/solutions/solution/separation/separation/separation"
+    )
     assert len(level.findall("state")) == 3
     moves = verify_labels(labels, "path").disassembly[2]["moves"]
     middle = level.findall("state")[1]
     first = np.asarray(DIRECTIONS[DIRECTION_NAMES.index(moves[0]["direction"])])
-    assert [int(middle.find(t).text.split()[0]) for t in ("dx", "dy", "dz")] == list(first * moves[0]["steps"])
+    assert [int(middle.find(t).text.split()[0]) for t in ("dx", "dy", "dz")] == list(
+        first * moves[0]["steps"]
+    )
 
 
 def test_xmpuzzle_refuses_an_invalid_assembly(tmp_path):

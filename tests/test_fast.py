@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import parts_after, random_valid_states, raw_chunks, voxel_labels
 
 from rllock import fast
 from rllock import reference as ref
 from rllock.env import apply_chunk, candidates, initial_state, make_task, sample_accepted
-
-from helpers import parts_after, random_valid_states, raw_chunks, voxel_labels
 
 
 def _reference_bits(parts, rest, removal) -> int:
@@ -21,8 +20,13 @@ def _reference_bits(parts, rest, removal) -> int:
 
 @pytest.mark.parametrize(
     "shape,k,removal,episodes",
-    [("cube4", 7, "straight", 6), ("cube4", 9, "path", 5), ("cube5", 13, "straight", 3),
-     ("box:4x3x3", 6, "path", 6), ("ring", 15, "straight", 2)],
+    [
+        ("cube4", 7, "straight", 6),
+        ("cube4", 9, "path", 5),
+        ("cube5", 13, "straight", 3),
+        ("box:4x3x3", 6, "path", 6),
+        ("ring", 15, "straight", 2),
+    ],
 )
 def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
     """Each of the three checks, on thousands of (state, raw chunk) pairs from random valid states."""
@@ -34,8 +38,18 @@ def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
         chunks = raw_chunks(task, state, rng, 25)
         if len(chunks) == 0:
             continue
-        got = fast.check_chunks(topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index,
-                                state.labels, state.placed + 1, chunks, removal == "path")
+        got = fast.check_chunks(
+            topo.nbr,
+            topo.ray,
+            topo.line,
+            topo.n_lines,
+            topo.coords,
+            topo.index,
+            state.labels,
+            state.placed + 1,
+            chunks,
+            removal == "path",
+        )
         for chunk, bits in zip(chunks, got):
             parts, rest = parts_after(task, state, chunk)
             expected = _reference_bits(parts, rest, removal)
@@ -56,8 +70,18 @@ def test_early_exit_sampler_keeps_exactly_the_chunks_full_checks_accept(removal)
     for state in random_valid_states(task, rng, 2):
         seed = int(rng.integers(1 << 30))
         raw = fast.sample_raw(topo.nbr, topo.ray, state.labels, state.placed + 1, task.piece_size, 300, seed)
-        bits = fast.check_chunks(topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index,
-                                 state.labels, state.placed + 1, raw, removal == "path")
+        bits = fast.check_chunks(
+            topo.nbr,
+            topo.ray,
+            topo.line,
+            topo.n_lines,
+            topo.coords,
+            topo.index,
+            state.labels,
+            state.placed + 1,
+            raw,
+            removal == "path",
+        )
         kept = sample_accepted(task, state, seed=seed, num_samples=300)
         np.testing.assert_array_equal(kept, raw[bits == fast.ALL_CHECKS])
         kept_total += len(kept)
@@ -135,8 +159,9 @@ def test_batched_candidates_equal_one_call_per_node():
     seeds = np.arange(100, 100 + len(states))
     batched, drawn = candidates_many(task, states, seeds, num_samples=512, max_candidates=16)
     for state, seed, got in zip(states, seeds, batched):
-        np.testing.assert_array_equal(got, candidates(task, state, seed=int(seed), num_samples=512,
-                                                      max_candidates=16))
+        np.testing.assert_array_equal(
+            got, candidates(task, state, seed=int(seed), num_samples=512, max_candidates=16)
+        )
     assert drawn > 0 and any(len(b) == 16 for b in batched)
 
 
@@ -170,7 +195,9 @@ def test_early_stopping_draws_candidates_like_the_full_sample():
         return counts
 
     a, b = histogram(early, 0), histogram(reference, 10**6)
-    keys = [k for k in set(a) | set(b) if a.get(k, 0) + b.get(k, 0) >= 10]  # pooled: rare sets tested together
+    keys = [
+        k for k in set(a) | set(b) if a.get(k, 0) + b.get(k, 0) >= 10
+    ]  # pooled: rare sets tested together
     assert len(keys) > 5
     x = np.array([a.get(k, 0) for k in keys] + [trials - sum(a.get(k, 0) for k in keys)], float)
     y = np.array([b.get(k, 0) for k in keys] + [trials - sum(b.get(k, 0) for k in keys)], float)

@@ -8,14 +8,14 @@ import pytest
 
 from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
+from orchestration.recorder import validation_rank
 from rllock import checkpoint as ckpt
+from rllock.config import TrainConfig, to_json
 from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.inference import load_policy
 from rllock.mcts import MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
-from orchestration.recorder import validation_rank
-from rllock.config import TrainConfig, to_json
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -50,13 +50,16 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
     buf.add_many(eps)
     batch = buf.sample(32, seed=0)
     # Without symmetries, so that every update sees exactly this batch.
-    learner = Learner(task, NET, LearnerConfig(learning_rate=3e-3, batch_size=32, symmetries=False),
-                      jax.random.PRNGKey(0))
+    learner = Learner(
+        task, NET, LearnerConfig(learning_rate=3e-3, batch_size=32, symmetries=False), jax.random.PRNGKey(0)
+    )
     first = learner.update(batch)
     for _ in range(60):
         last = learner.update(batch)
     assert learner.step == 61
-    assert np.isfinite(first["policy"]) and last["value"] < first["value"] and last["policy"] < first["policy"]
+    assert (
+        np.isfinite(first["policy"]) and last["value"] < first["value"] and last["policy"] < first["policy"]
+    )
 
 
 def _save(tmp_path, task, learner):

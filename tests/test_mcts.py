@@ -17,7 +17,9 @@ def test_expansion_rewards_terminals_and_memo():
     store = NodeStore(task, SMALL, 4, seed=0)
     root = store.add(initial_state(task))
     assert 0 < len(store.cands[root]) <= SMALL.candidates
-    kids, reward, discount, cap, planes, chunks, valid = store.expand(np.array([root, root]), np.array([0, 0]))
+    kids, reward, discount, cap, planes, chunks, valid = store.expand(
+        np.array([root, root]), np.array([0, 0])
+    )
     assert kids[0] == kids[1] and store.child(root, 0) == kids[0]  # the same (node, action) -> one node
     np.testing.assert_allclose(reward, 1 / 4)
     np.testing.assert_allclose(cap, 2 / 4)  # one piece placed, two still to place for K = 4

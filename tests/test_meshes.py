@@ -26,8 +26,12 @@ def _face_neighbours(labels: np.ndarray) -> set[tuple[int, int]]:
 
 
 def _manifold(mesh: trimesh.Trimesh) -> m3.Manifold:
-    return m3.Manifold(m3.Mesh(vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
-                               tri_verts=np.asarray(mesh.faces, dtype=np.uint32)))
+    return m3.Manifold(
+        m3.Mesh(
+            vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
+            tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
+        )
+    )
 
 
 def test_box_mesh_voxelizes_to_a_full_box(tmp_path):
@@ -61,10 +65,16 @@ def test_disconnected_mesh_keeps_the_largest_part(tmp_path, caplog):
 
 @pytest.mark.parametrize(
     "make,needle",
-    [(lambda p: trimesh.Trimesh(trimesh.creation.box().vertices, trimesh.creation.box().faces[:-2])
-      .export(p / "open.stl"), "not watertight"),
-     (lambda p: (p / "junk.stl").write_text("this is no mesh"), "no triangle mesh"),
-     (lambda p: (p / "empty.obj").write_text(""), "no triangle mesh")],
+    [
+        (
+            lambda p: trimesh.Trimesh(
+                trimesh.creation.box().vertices, trimesh.creation.box().faces[:-2]
+            ).export(p / "open.stl"),
+            "not watertight",
+        ),
+        (lambda p: (p / "junk.stl").write_text("this is no mesh"), "no triangle mesh"),
+        (lambda p: (p / "empty.obj").write_text(""), "no triangle mesh"),
+    ],
 )
 def test_bad_meshes_are_clear_errors(tmp_path, make, needle):
     make(tmp_path)
@@ -164,8 +174,11 @@ def test_gap_shrinks_pieces_and_keeps_them_apart(assembly):
         assert mesh.is_watertight
         assert mesh.volume == pytest.approx(piece_volume(cells, size, gap), rel=1e-9)
         assert mesh.volume < len(cells) * size**3
-        np.testing.assert_allclose(mesh.bounds, [cells.min(axis=0) * size + gap / 2,
-                                                 (cells.max(axis=0) + 1) * size - gap / 2], atol=1e-6)
+        np.testing.assert_allclose(
+            mesh.bounds,
+            [cells.min(axis=0) * size + gap / 2, (cells.max(axis=0) + 1) * size - gap / 2],
+            atol=1e-6,
+        )
     solids = [_manifold(m) for m in meshes]
     touching = _face_neighbours(assembly)
     for (i, a), (j, b) in itertools.combinations(enumerate(solids, start=1), 2):

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,10 +8,17 @@ import pytest
 
 from rllock.env import make_task
 from rllock.errors import RLLockError
-import flax.linen as nn
-
-from rllock.network import (MASKED_LOGIT, Conv3, NetConfig, PolicyValueNet, Upsample2, chunk_logits, encode_batch,
-                            fit_canvas, init_params)
+from rllock.network import (
+    MASKED_LOGIT,
+    Conv3,
+    NetConfig,
+    PolicyValueNet,
+    Upsample2,
+    chunk_logits,
+    encode_batch,
+    fit_canvas,
+    init_params,
+)
 
 
 def test_shifted_convolution_equals_lax_conv():
@@ -19,8 +27,9 @@ def test_shifted_convolution_equals_lax_conv():
     conv = Conv3(5)
     params = conv.init(key_p, x)
     kernel = params["params"]["kernel"].reshape(3, 3, 3, 3, 5)
-    expected = jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME",
-                                            dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+    expected = jax.lax.conv_general_dilated(
+        x, kernel, (1, 1, 1), "SAME", dimension_numbers=("NDHWC", "DHWIO", "NDHWC")
+    )
     np.testing.assert_allclose(conv.apply(params, x), expected + params["params"]["bias"], atol=1e-5)
 
 
@@ -63,9 +72,16 @@ def test_shapes_that_do_not_fit_the_canvas_are_errors():
     assert fit_canvas(make_task("cube4", 4), NetConfig(canvas=8)).canvas == 8
 
 
-@pytest.mark.parametrize("shape,features,canvas", [("cube4", (16, 32, 64), 4), ("cube5", (16, 32, 64), 8),
-                                                   ("cube6", (16, 32, 64), 8), ("cube6", (8, 16), 6),
-                                                   ("box:7x3x2", (8,), 7)])
+@pytest.mark.parametrize(
+    "shape,features,canvas",
+    [
+        ("cube4", (16, 32, 64), 4),
+        ("cube5", (16, 32, 64), 8),
+        ("cube6", (16, 32, 64), 8),
+        ("cube6", (8, 16), 6),
+        ("box:7x3x2", (8,), 7),
+    ],
+)
 def test_the_default_canvas_is_the_smallest_that_fits(shape, features, canvas):
     assert fit_canvas(make_task(shape, 2), NetConfig(features=features)).canvas == canvas
 
@@ -77,6 +93,10 @@ def test_upsampling_equals_flax_conv_transpose_with_the_same_parameters():
     reference = nn.ConvTranspose(6, (2, 2, 2), strides=(2, 2, 2))
     shapes = reference.init(jax.random.PRNGKey(1), x)["params"]
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
-    params = {"params": {"kernel": jax.random.normal(keys[0], shapes["kernel"].shape),
-                         "bias": jax.random.normal(keys[1], shapes["bias"].shape)}}
+    params = {
+        "params": {
+            "kernel": jax.random.normal(keys[0], shapes["kernel"].shape),
+            "bias": jax.random.normal(keys[1], shapes["bias"].shape),
+        }
+    }
     np.testing.assert_allclose(Upsample2(6).apply(params, x), reference.apply(params, x), atol=1e-5)

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from helpers import parts_after, random_valid_states, raw_chunks
 
 from rllock import reference as ref
 from rllock.env import make_task
 from rllock.shapes import read_puz_labels
-
-from helpers import parts_after, random_valid_states, raw_chunks
 
 
 def _parts(labels: np.ndarray, upto: int) -> list[ref.Part]:

@@ -59,11 +59,26 @@ def test_png_shows_every_piece(tmp_path):
 
 
 def test_a_picture_writer_puts_a_picture_next_to_the_assembly(tmp_path, labels):
-    write_assembly(tmp_path / "with", labels, removal="straight", shape="cube4", method={"name": "test"}, seed=0,
-                   timings={}, picture=write_picture)
+    write_assembly(
+        tmp_path / "with",
+        labels,
+        removal="straight",
+        shape="cube4",
+        method={"name": "test"},
+        seed=0,
+        timings={},
+        picture=write_picture,
+    )
     assert Image.open(tmp_path / "with" / "assembly.png").format == "PNG"
-    write_assembly(tmp_path / "without", labels, removal="straight", shape="cube4", method={"name": "test"},
-                   seed=0, timings={})
+    write_assembly(
+        tmp_path / "without",
+        labels,
+        removal="straight",
+        shape="cube4",
+        method={"name": "test"},
+        seed=0,
+        timings={},
+    )
     assert not (tmp_path / "without" / "assembly.png").exists()
 
 
@@ -75,7 +90,9 @@ def test_steps_follow_the_verified_moves(data):
     assert steps[0].present.all() and not steps[0].offsets.any()
     assert steps[-1].present.tolist() == [False] * 8 + [True]
     for entry in verdict.disassembly:
-        total = sum(np.asarray(DIRECTIONS[DIRECTION_NAMES.index(m["direction"])]) * m["steps"] for m in entry["moves"])
+        total = sum(
+            np.asarray(DIRECTIONS[DIRECTION_NAMES.index(m["direction"])]) * m["steps"] for m in entry["moves"]
+        )
         np.testing.assert_array_equal(steps[-1].offsets[entry["piece"] - 1], total)
     # Finer GIF frames pass through the same positions.
     fine = disassembly_steps(verdict, frames_per_move=3)
@@ -108,13 +125,28 @@ def test_html_renders_in_headless_chromium(tmp_path, labels):
     page, shot = tmp_path / "a.html", tmp_path / "shot.png"
     write_html(labels, verify_labels(labels, "straight"), page)
     subprocess.run(
-        # --enable-unsafe-swiftshader keeps software WebGL on where Chromium no longer falls back to it by itself.
-        [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-         "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=800,600",
-         "--virtual-time-budget=5000", page.as_uri()],
-        capture_output=True, timeout=120, check=False,
+        # --enable-unsafe-swiftshader keeps software WebGL on where Chromium no longer falls back to it
+        # by itself.
+        [
+            str(CHROMIUM),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--enable-unsafe-swiftshader",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            f"--user-data-dir={tmp_path / 'profile'}",
+            f"--screenshot={shot}",
+            "--window-size=800,600",
+            "--virtual-time-budget=5000",
+            page.as_uri(),
+        ],
+        capture_output=True,
+        timeout=120,
+        check=False,
     )
     image = Image.open(shot)
     # The pieces cover a good part of the 3D view; a page without WebGL output would be white and grey.

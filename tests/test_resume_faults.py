@@ -12,15 +12,52 @@ from pathlib import Path
 import psutil
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-TINY = ["--shape", "box:4x4x2", "--pieces", "3", "--canvas", "4", "--features", "4,8", "--simulations", "8",
-        "--raw-samples", "256", "--candidates", "8", "--max-considered", "4", "--episodes-per-batch", "4",
-        "--min-buffer", "8", "--batch-size", "16", "--publish-every", "5", "--validation-episodes", "8",
-        "--checkpoint-minutes", "0.05", "--validate-minutes", "0.3", "--actors", "1", "--learning-rate", "1e-3"]
+TINY = [
+    "--shape",
+    "box:4x4x2",
+    "--pieces",
+    "3",
+    "--canvas",
+    "4",
+    "--features",
+    "4,8",
+    "--simulations",
+    "8",
+    "--raw-samples",
+    "256",
+    "--candidates",
+    "8",
+    "--max-considered",
+    "4",
+    "--episodes-per-batch",
+    "4",
+    "--min-buffer",
+    "8",
+    "--batch-size",
+    "16",
+    "--publish-every",
+    "5",
+    "--validation-episodes",
+    "8",
+    "--checkpoint-minutes",
+    "0.05",
+    "--validate-minutes",
+    "0.3",
+    "--actors",
+    "1",
+    "--learning-rate",
+    "1e-3",
+]
 
 
 def _train(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "rllock.cli", "train", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "rllock.cli", "train", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
 
 
 def _steps(logdir: Path) -> list[int]:

@@ -18,9 +18,14 @@ def test_builtins_have_the_documented_sizes():
 
 @pytest.mark.parametrize(
     "name,count",
-    [("desia_Cube_4x4x4_origin.puz", 64), ("desia_Cube_5x5x5_origin.puz", 125),
-     ("desia_Cube_hollow_4x4x4_origin.puz", 56), ("desia_bunny_origin.puz", 966),
-     ("desia_dog_origin.puz", 581), ("highlevel_Sofa_7x8x6.vol", 168)],
+    [
+        ("desia_Cube_4x4x4_origin.puz", 64),
+        ("desia_Cube_5x5x5_origin.puz", 125),
+        ("desia_Cube_hollow_4x4x4_origin.puz", 56),
+        ("desia_bunny_origin.puz", 966),
+        ("desia_dog_origin.puz", 581),
+        ("highlevel_Sofa_7x8x6.vol", 168),
+    ],
 )
 def test_published_shapes_load_with_their_voxel_counts(data, name, count):
     assert load_shape(str(data / "shapes" / name)).sum() == count
@@ -28,12 +33,19 @@ def test_published_shapes_load_with_their_voxel_counts(data, name, count):
 
 @pytest.mark.parametrize(
     "name,file",
-    [("bunny", "highlevel_Bunny_11x10x8.vol"), ("cubeweird", "highlevel_CubeWeird_6x6x6.vol"),
-     ("mario", "highlevel_Mario_12x16x4.vol"), ("shelf", "highlevel_Shelf_9x9x4.vol"),
-     ("sofa", "highlevel_Sofa_7x8x6.vol"), ("spider", "highlevel_Spider_12x13x6.vol"),
-     ("desia-cube4", "desia_Cube_4x4x4_origin.puz"), ("desia-cube5", "desia_Cube_5x5x5_origin.puz"),
-     ("desia-hollow-cube4", "desia_Cube_hollow_4x4x4_origin.puz"), ("desia-bunny", "desia_bunny_origin.puz"),
-     ("desia-dog", "desia_dog_origin.puz")],
+    [
+        ("bunny", "highlevel_Bunny_11x10x8.vol"),
+        ("cubeweird", "highlevel_CubeWeird_6x6x6.vol"),
+        ("mario", "highlevel_Mario_12x16x4.vol"),
+        ("shelf", "highlevel_Shelf_9x9x4.vol"),
+        ("sofa", "highlevel_Sofa_7x8x6.vol"),
+        ("spider", "highlevel_Spider_12x13x6.vol"),
+        ("desia-cube4", "desia_Cube_4x4x4_origin.puz"),
+        ("desia-cube5", "desia_Cube_5x5x5_origin.puz"),
+        ("desia-hollow-cube4", "desia_Cube_hollow_4x4x4_origin.puz"),
+        ("desia-bunny", "desia_bunny_origin.puz"),
+        ("desia-dog", "desia_dog_origin.puz"),
+    ],
 )
 def test_vendored_shapes_load_by_name_from_any_directory(data, name, file, tmp_path, monkeypatch):
     from_file = load_shape(str(data / "shapes" / file))
@@ -74,8 +86,13 @@ def test_npy_shapes_and_nonzero_puz_values(tmp_path):
 
 @pytest.mark.parametrize(
     "content,message",
-    [("4 4", "header"), ("2 1 1\n1 x", "integers"), ("2 1 1\n1 1 1", "found 3 values"),
-     ("2 1 1\n0 0", "empty"), ("3 1 1\n1 0 1", "not 6-connected")],
+    [
+        ("4 4", "header"),
+        ("2 1 1\n1 x", "integers"),
+        ("2 1 1\n1 1 1", "found 3 values"),
+        ("2 1 1\n0 0", "empty"),
+        ("3 1 1\n1 0 1", "not 6-connected"),
+    ],
 )
 def test_bad_shape_files_are_clear_errors(tmp_path, content, message):
     path = tmp_path / "bad.puz"

@@ -4,14 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from rllock.assembly import read_assembly, write_assembly
 from rllock.env import make_task
 from rllock.shapes import read_puz_labels
 from rllock.solver import luby, search
 from rllock.verifier import verify_labels
-
-from conftest import run_cli
 
 
 def test_luby_sequence():
@@ -29,8 +28,10 @@ def test_same_seed_same_assemblies():
     assert not np.array_equal(a[0], c[0])
 
 
-@pytest.mark.parametrize("shape,k,removal", [("cube4", 7, "straight"), ("cube5", 13, "straight"),
-                                             ("ring", 15, "straight"), ("cube4", 8, "path")])
+@pytest.mark.parametrize(
+    "shape,k,removal",
+    [("cube4", 7, "straight"), ("cube5", 13, "straight"), ("ring", 15, "straight"), ("cube4", 8, "path")],
+)
 def test_found_assemblies_have_equal_pieces_and_pass_the_verifier(shape, k, removal):
     task = make_task(shape, k, removal)
     labels = _first(task, 0, 1)[0]
@@ -41,8 +42,9 @@ def test_found_assemblies_have_equal_pieces_and_pass_the_verifier(shape, k, remo
 
 
 def test_solve_command_writes_verified_files(tmp_path):
-    code, out, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--count", "2", "--seed", "5",
-                             "--out", str(tmp_path))
+    code, out, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--count", "2", "--seed", "5", "--out", str(tmp_path)
+    )
     assert code == 0 and "per valid assembly" in out
     folders = sorted(tmp_path.glob("assembly_*"))
     assert len(folders) == 2
@@ -58,6 +60,13 @@ def test_solve_command_writes_verified_files(tmp_path):
 
 def test_invalid_assemblies_are_never_written(tmp_path):
     with pytest.raises(AssertionError, match="refusing"):
-        write_assembly(tmp_path / "bad", np.array([1, 2, 3]).reshape(3, 1, 1), removal="straight",
-                       shape="box:3x1x1", method={"name": "test"}, seed=0, timings={})
+        write_assembly(
+            tmp_path / "bad",
+            np.array([1, 2, 3]).reshape(3, 1, 1),
+            removal="straight",
+            shape="box:3x1x1",
+            method={"name": "test"},
+            seed=0,
+            timings={},
+        )
     assert not (tmp_path / "bad").exists()

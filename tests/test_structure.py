@@ -14,8 +14,11 @@ from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig, fr
 from rllock.flags import add_flags, field_docs, from_flags
 
 ROOT = Path(__file__).resolve().parents[1]
-UPPER = {"actors": {"orchestration"}, "learner": {"orchestration", "actors"},
-         "rllock": {"actors", "learner", "orchestration"}}
+UPPER = {
+    "actors": {"orchestration"},
+    "learner": {"orchestration", "actors"},
+    "rllock": {"actors", "learner", "orchestration"},
+}
 
 
 def _module_level_imports(path: Path) -> set[str]:
@@ -31,14 +34,18 @@ def _module_level_imports(path: Path) -> set[str]:
 
 @pytest.mark.parametrize("package", sorted(UPPER))
 def test_no_module_level_import_goes_up_a_layer(package):
-    offenders = {str(p.relative_to(ROOT)): _module_level_imports(p) & UPPER[package]
-                 for p in (ROOT / package).rglob("*.py")}
+    offenders = {
+        str(p.relative_to(ROOT)): _module_level_imports(p) & UPPER[package]
+        for p in (ROOT / package).rglob("*.py")
+    }
     assert not {k: v for k, v in offenders.items() if v}
 
 
 def test_the_public_api_is_light_and_complete():
-    code = ("import sys, rllock; assert 'jax' not in sys.modules and 'ray' not in sys.modules; "
-            "print(sorted(n for n in rllock.__all__ if callable(getattr(rllock, n))))")
+    code = (
+        "import sys, rllock; assert 'jax' not in sys.modules and 'ray' not in sys.modules; "
+        "print(sorted(n for n in rllock.__all__ if callable(getattr(rllock, n))))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == str(["generate", "load_policy", "make_task", "read_assembly", "solve", "verify"])
 
@@ -63,8 +70,23 @@ def test_flags_come_from_the_config_with_their_docstrings():
     helps = {a.dest: a.help for a in parser._actions}
     assert "Simulations per decision" in helps["simulations"]  # a nested field, flat flag
     assert helps["evaluation"].startswith(field_docs(SelfPlayConfig)["evaluation"][:40])
-    args = parser.parse_args(["--shape", "cube5", "--pieces", "13", "--features", "8,16", "--simulations", "32",
-                              "--no-symmetries", "--episodes-per-batch", "4", "--max-learner-steps", "7"])
+    args = parser.parse_args(
+        [
+            "--shape",
+            "cube5",
+            "--pieces",
+            "13",
+            "--features",
+            "8,16",
+            "--simulations",
+            "32",
+            "--no-symmetries",
+            "--episodes-per-batch",
+            "4",
+            "--max-learner-steps",
+            "7",
+        ]
+    )
     config = from_flags(TrainConfig, args)
     assert config.net == NetConfig(features=(8, 16)) and config.mcts == MCTSConfig(simulations=32)
     assert config.learner.symmetries is False and config.selfplay.episodes_per_batch == 4
@@ -72,6 +94,11 @@ def test_flags_come_from_the_config_with_their_docstrings():
 
 
 def test_the_saved_config_round_trips():
-    config = TrainConfig(shape="ring", pieces=15, net=NetConfig(canvas=8, features=(4, 8)),
-                         mcts=MCTSConfig(candidates=16), selfplay=SelfPlayConfig(actors=3))
+    config = TrainConfig(
+        shape="ring",
+        pieces=15,
+        net=NetConfig(canvas=8, features=(4, 8)),
+        mcts=MCTSConfig(candidates=16),
+        selfplay=SelfPlayConfig(actors=3),
+    )
     assert from_json(TrainConfig, to_json(config)) == config

@@ -7,8 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
+from helpers import random_valid_states, raw_chunks
 
-from helpers import raw_chunks, random_valid_states
 from learner.learner import augment
 from learner.replay import ReplayBuffer
 from rllock import fast
@@ -65,7 +65,9 @@ def test_checkers_agree_on_symmetric_images(removal):
         for p in perms[rng.choice(len(perms), 6, replace=False)]:
             labels = np.empty_like(state.labels)
             labels[p] = state.labels
-            got = fast.check_chunks(*args, labels, state.placed + 1, p[chunks].astype(np.int32), removal == "path")
+            got = fast.check_chunks(
+                *args, labels, state.placed + 1, p[chunks].astype(np.int32), removal == "path"
+            )
             np.testing.assert_array_equal(got, want)
             compared += len(chunks)
         accepted += int((want == fast.ALL_CHECKS).sum())
@@ -76,27 +78,40 @@ def test_augment_maps_labels_and_chunks_by_one_permutation_per_row():
     rng = np.random.default_rng(0)
     n_vox, m, n, batch = 12, 3, 2, 16
     perms = np.stack([rng.permutation(n_vox) for _ in range(5)])
-    sample = {"labels": rng.integers(0, 4, (batch, n_vox)).astype(np.int8),
-              "chunks": rng.integers(0, n_vox, (batch, m, n)).astype(np.int16),
-              "pi": rng.random((batch, m)).astype(np.float32), "z": rng.random(batch).astype(np.float32)}
+    sample = {
+        "labels": rng.integers(0, 4, (batch, n_vox)).astype(np.int8),
+        "chunks": rng.integers(0, n_vox, (batch, m, n)).astype(np.int16),
+        "pi": rng.random((batch, m)).astype(np.float32),
+        "z": rng.random(batch).astype(np.float32),
+    }
     out = augment(sample, perms, seed=1)
     assert out["chunks"].dtype == np.int16 and out["labels"].dtype == np.int8
     np.testing.assert_array_equal(out["pi"], sample["pi"])
     used = set()
     for b in range(batch):
         # Exactly one of the permutations explains the row: labels'[p] = labels and chunks' = p[chunks].
-        fits = [i for i, p in enumerate(perms) if np.array_equal(out["labels"][b][p], sample["labels"][b])
-                and np.array_equal(out["chunks"][b], p[sample["chunks"][b]])]
+        fits = [
+            i
+            for i, p in enumerate(perms)
+            if np.array_equal(out["labels"][b][p], sample["labels"][b])
+            and np.array_equal(out["chunks"][b], p[sample["chunks"][b]])
+        ]
         assert len(fits) >= 1
         used.update(fits)
     assert len(used) > 1  # rows draw different symmetries
 
 
 def _episode(success: bool, length: int, n_vox: int = 8, m: int = 2, n: int = 2) -> Episode:
-    return Episode(labels=np.full((length, n_vox), int(success), np.int8), placed=np.arange(length, dtype=np.int16),
-                   chunks=np.zeros((length, m, n), np.int16), num_valid=np.ones(length, np.int16),
-                   pi=np.full((length, m), 0.5, np.float32), z=np.zeros(length, np.float32), success=success,
-                   final=State(np.zeros(n_vox, np.int16), length))
+    return Episode(
+        labels=np.full((length, n_vox), int(success), np.int8),
+        placed=np.arange(length, dtype=np.int16),
+        chunks=np.zeros((length, m, n), np.int16),
+        num_valid=np.ones(length, np.int16),
+        pi=np.full((length, m), 0.5, np.float32),
+        z=np.zeros(length, np.float32),
+        success=success,
+        final=State(np.zeros(n_vox, np.int16), length),
+    )
 
 
 def test_success_fraction_mixes_successful_transitions(tmp_path):

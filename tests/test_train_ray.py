@@ -7,18 +7,25 @@ import math
 
 import pytest
 import ray
+from conftest import run_cli
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from orchestration.train import train
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
 from rllock.errors import RLLockError
 
-from conftest import run_cli
-
-TINY = dict(shape="box:4x4x2", pieces=3, net=NetConfig(features=(4, 8)),
-            mcts=MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8),
-            selfplay=SelfPlayConfig(actors=1, episodes_per_batch=4), publish_every=5, max_policy_lag=2,
-            validate_minutes=0.2, validation_episodes=8, checkpoint_minutes=0.1)
+TINY = dict(
+    shape="box:4x4x2",
+    pieces=3,
+    net=NetConfig(features=(4, 8)),
+    mcts=MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8),
+    selfplay=SelfPlayConfig(actors=1, episodes_per_batch=4),
+    publish_every=5,
+    max_policy_lag=2,
+    validate_minutes=0.2,
+    validation_episodes=8,
+    checkpoint_minutes=0.1,
+)
 STEPS = 60
 
 
@@ -28,8 +35,15 @@ def run(tmp_path_factory):
     ray.init(num_cpus=2, include_dashboard=False)
     try:
         # The run ends on its learner-step limit; the minutes are only a safety net.
-        result = train(TrainConfig(minutes=5, max_learner_steps=STEPS, logdir=str(logdir),
-                                   learner=LearnerConfig(learning_rate=1e-3, batch_size=16), **TINY))
+        result = train(
+            TrainConfig(
+                minutes=5,
+                max_learner_steps=STEPS,
+                logdir=str(logdir),
+                learner=LearnerConfig(learning_rate=1e-3, batch_size=16),
+                **TINY,
+            )
+        )
     finally:
         ray.shutdown()
     return logdir, result
@@ -46,9 +60,18 @@ def test_training_writes_checkpoints_and_event_files(run):
     events = EventAccumulator(str(logdir))
     events.Reload()
     tags = set(events.Tags()["scalars"])
-    assert {"losses/policy", "losses/value", "charts/episodes_per_sec", "charts/simulations_per_sec",
-            "charts/policy_lag", "charts/learner_steps_per_sec", "buffer/size", "validation/success_rate", "validation/mean_return",
-            "validation/time_per_valid_s"} <= tags
+    assert {
+        "losses/policy",
+        "losses/value",
+        "charts/episodes_per_sec",
+        "charts/simulations_per_sec",
+        "charts/policy_lag",
+        "charts/learner_steps_per_sec",
+        "buffer/size",
+        "validation/success_rate",
+        "validation/mean_return",
+        "validation/time_per_valid_s",
+    } <= tags
     assert "best/assembly" in events.Tags()["images"] and events.Tags()["tensors"]  # picture; config text
     for tag in ("charts/episodes_per_sec", "validation/success_rate"):
         steps = [e.step for e in events.Scalars(tag)]
@@ -57,19 +80,41 @@ def test_training_writes_checkpoints_and_event_files(run):
     for kind in ("driver", "buffer", "actor"):
         assert events.Scalars(f"memory/{kind}_peak_mb")[-1].value > 50  # real processes, real megabytes
     assert (logdir / "best_assembly" / "assembly.json").exists() and (logdir / "replay.npz").exists()
-    losses = [e.value for e in events.Scalars("losses/policy")] + [e.value for e in events.Scalars("losses/value")]
+    losses = [e.value for e in events.Scalars("losses/policy")] + [
+        e.value for e in events.Scalars("losses/value")
+    ]
     assert losses and all(math.isfinite(v) for v in losses)
 
 
 def test_generate_from_the_run_writes_verified_assemblies(run, tmp_path):
     logdir, _ = run
-    code, out, err = run_cli("generate", "--checkpoint", str(logdir), "--count", "1", "--batch", "8",
-                             "--time-limit", "120", "--out", str(tmp_path / "gen"))
+    code, out, err = run_cli(
+        "generate",
+        "--checkpoint",
+        str(logdir),
+        "--count",
+        "1",
+        "--batch",
+        "8",
+        "--time-limit",
+        "120",
+        "--out",
+        str(tmp_path / "gen"),
+    )
     assert code == 0, err
     doc = json.loads((tmp_path / "gen" / "assembly_001" / "assembly.json").read_text())
     assert doc["verification"]["valid"] and doc["method"]["name"] == "rl-lock" and doc["K"] == 3
-    code, _, err = run_cli("generate", "--checkpoint", str(logdir), "--shape", "box:4x4x2", "--pieces", "4",
-                           "--out", str(tmp_path / "other"))
+    code, _, err = run_cli(
+        "generate",
+        "--checkpoint",
+        str(logdir),
+        "--shape",
+        "box:4x4x2",
+        "--pieces",
+        "4",
+        "--out",
+        str(tmp_path / "other"),
+    )
     assert code == 2 and "another task" in err and "Traceback" not in err
 
 

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from rllock import reference as ref
 from rllock.env import make_task
@@ -11,10 +12,13 @@ from rllock.shapes import read_puz_labels, write_puz
 from rllock.solver import search
 from rllock.verifier import verify_labels
 
-from conftest import run_cli
-
-PUBLISHED = ["Cube_4x4x4_K9.puz", "Cube_4x4x4_K9_01.puz", "Cube_Hollow_4x4x4_K7.puz", "cube_5x5x5_K16.puz",
-             "cartoon_dog.puz"]
+PUBLISHED = [
+    "Cube_4x4x4_K9.puz",
+    "Cube_4x4x4_K9_01.puz",
+    "Cube_Hollow_4x4x4_K7.puz",
+    "cube_5x5x5_K16.puz",
+    "cartoon_dog.puz",
+]
 
 
 def replay_disassembly(labels: np.ndarray, verdict) -> None:
@@ -34,7 +38,9 @@ def replay_disassembly(labels: np.ndarray, verdict) -> None:
                 assert not any(tuple(v) in rest for v in (piece + offset).tolist()), f"piece {i} collides"
         moved = piece + offset
         lo, hi = rest_cells.min(axis=0), rest_cells.max(axis=0)
-        assert any((moved[:, a].max() < lo[a]) or (moved[:, a].min() > hi[a]) for a in range(3)), f"piece {i} stuck"
+        assert any((moved[:, a].max() < lo[a]) or (moved[:, a].min() > hi[a]) for a in range(3)), (
+            f"piece {i} stuck"
+        )
     assert [e["piece"] for e in verdict.disassembly] == list(range(1, k))
 
 
@@ -53,9 +59,11 @@ def test_published_cube_fails_straight_removal_at_stage_3(data):
 
 @pytest.mark.parametrize(
     "row,stage,check",
-    [([1, 2, 1], 1, "connected"),  # piece 1 in two parts
-     ([2, 1, 2], 1, "connected"),  # the rest R_1 in two parts
-     ([1, 2, 3], 2, "interlocking")],  # a bar of three: everything slides along y
+    [
+        ([1, 2, 1], 1, "connected"),  # piece 1 in two parts
+        ([2, 1, 2], 1, "connected"),  # the rest R_1 in two parts
+        ([1, 2, 3], 2, "interlocking"),
+    ],  # a bar of three: everything slides along y
 )
 def test_first_failure_is_reported_with_its_stage(row, stage, check):
     labels = np.array(row).reshape(3, 1, 1)
@@ -92,7 +100,8 @@ def test_verify_uses_the_removal_mode_an_assembly_json_names(data, tmp_path):
     from rllock.assembly import write_assembly
 
     labels = read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz")  # valid only under path
-    write_assembly(tmp_path, labels, removal="path", shape="cube4", method={"name": "published"}, seed=0,
-                   timings={})
+    write_assembly(
+        tmp_path, labels, removal="path", shape="cube4", method={"name": "published"}, seed=0, timings={}
+    )
     assert run_cli("verify", str(tmp_path / "assembly.json"))[0] == 0
     assert run_cli("verify", str(tmp_path / "assembly.json"), "--removal", "straight")[0] == 1
