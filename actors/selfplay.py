@@ -2,9 +2,11 @@
 
 An actor plays `episodes` episodes in lockstep per call, with the weights version it was handed, pushes
 them into the replay buffer actor (waiting for it: bounded in-flight data) and returns its statistics.
-Its thread count (numba's sampler threads; XLA runs the small network on one thread, which is fastest
-here) is set through the environment of its process (`actor_env`), so that actors never oversubscribe
-the cores they were given.
+An actor with T cores splits its episodes into T lockstep groups searched in T threads
+(`rllock.mcts.play_groups`), so that one group's sampler runs while another's network does; a lockstep
+worker instead runs one large group with the sampler spread over numba's threads. Thread counts (XLA
+runs the small network on one thread per group, which is fastest here) are set through the environment
+of the actor's process (`actor_env`), so that actors never oversubscribe the cores they were given.
 """
 
 from __future__ import annotations
@@ -19,8 +21,7 @@ import ray
 
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
-from rllock.mcts import Episode, Searcher, TimeSplit, play
-from rllock.network import PolicyValueNet
+from rllock.mcts import Episode, Searcher, TimeSplit, play_groups, searchers
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -66,21 +67,30 @@ class PlayStats:
 
 
 def evaluate(
-    searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int, times: TimeSplit | None = None
+    searchers: list[Searcher],
+    params,
+    task: Task,
+    key: jax.Array,
+    *,
+    seed: int,
+    times: TimeSplit | None = None,
 ) -> tuple[list[Episode], float]:
-    """One lockstep batch of episodes and the seconds it took."""
+    """One batch of episodes (a lockstep group per searcher) and the seconds it took."""
     start = time.perf_counter()
-    episodes = play(searcher, params, task, key, seed=seed, times=times)
+    episodes = play_groups(searchers, params, task, key, seed=seed, times=times)
     return episodes, time.perf_counter() - start
 
 
 class SelfPlayWorker:
-    """Plays lockstep batches of `episodes` episodes with the weights it was last given."""
+    """Plays batches of `episodes` episodes, in `groups` lockstep groups, with the weights it was last
+    given."""
 
-    def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int):
+    def __init__(
+        self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, groups: int = 1
+    ):
         self.task = spec.make()
         self.mcts = mcts
-        self.searcher = Searcher(PolicyValueNet(net), mcts, self.task.piece_size, episodes)
+        self.searchers = searchers(net, mcts, self.task.piece_size, episodes, groups)
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -95,7 +105,12 @@ class SelfPlayWorker:
         self.key, sub = jax.random.split(self.key)
         times = TimeSplit()
         episodes, seconds = evaluate(
-            self.searcher, self.params, self.task, sub, seed=self.seed * 1_000_003 + self.batches, times=times
+            self.searchers,
+            self.params,
+            self.task,
+            sub,
+            seed=self.seed * 1_000_003 + self.batches,
+            times=times,
         )
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
@@ -117,8 +132,10 @@ class SelfPlayWorker:
 class SelfPlayActor:
     """Plays batches with the latest published weights and pushes them into the replay buffer."""
 
-    def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, buffer):
-        self.worker = SelfPlayWorker(spec, net, mcts, episodes, seed)
+    def __init__(
+        self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, groups: int, buffer
+    ):
+        self.worker = SelfPlayWorker(spec, net, mcts, episodes, seed, groups)
         self.buffer = buffer
 
     def pid(self) -> int:

@@ -55,6 +55,7 @@ def _measure(
         "mode": layout.mode,
         "episodes_per_batch": layout.episodes,
         "threads_per_actor": layout.threads,
+        "groups_per_actor": layout.groups,
         "episodes": episodes,
         "decisions": decisions,
         "seconds": elapsed,

@@ -16,18 +16,18 @@ import ray
 from actors.selfplay import actor_env
 from orchestration.pool import start_ray
 from rllock.assembly import PictureWriter
-from rllock.inference import Collector, GenerateResult, Policy, play_round, searcher_for
+from rllock.inference import Collector, GenerateResult, Policy, play_round, searchers_for
 
 
 @ray.remote
 class GenerateActor:
     def __init__(self, policy: Policy, batch: int):
         self.policy = policy
-        self.searcher = searcher_for(policy, batch)
+        self.searchers = searchers_for(policy, batch, 1)  # one core each
 
     def play(self, seed: int, round_: int):
         start = time.perf_counter()
-        episodes = play_round(self.searcher, self.policy, seed, round_)
+        episodes = play_round(self.searchers, self.policy, seed, round_)
         return episodes, time.perf_counter() - start
 
 

@@ -36,6 +36,7 @@ class Layout:
     episodes: int
     cpus: float
     threads: int
+    groups: int  # lockstep groups per actor, searched in threads of their own
     gpus: float
     mode: str  # "per-actor" or "lockstep"
 
@@ -43,20 +44,20 @@ class Layout:
 def plan_layout(selfplay: SelfPlayConfig, *, cpus: float, gpus: float, reserved_cpus: float) -> Layout:
     """The layout for a cluster with `cpus` and `gpus` (`reserved_cpus` stay for the learner).
 
-    per-actor: `actors` actors (default one per free core), each on its share of the free cores.
-    lockstep: one worker that plays all the actors' episodes in one lockstep batch, with the network on
-    the GPU when there is one and the sampler spread over all the free cores."""
+    per-actor: `actors` actors (default one per free core), each on its share of the free cores, with one
+    lockstep group per core. lockstep: one worker that plays all the actors' episodes in one lockstep
+    batch, with the network on the GPU when there is one and the sampler spread over the free cores."""
     free = max(1.0, cpus - reserved_cpus)
     actors = selfplay.actors or max(1, int(free))
     mode = selfplay.evaluation
     if mode == "auto":
         mode = "lockstep" if gpus > 0 else "per-actor"
     if mode == "lockstep":
-        return Layout(
-            1, actors * selfplay.episodes_per_batch, free, max(1, int(free)), 1.0 if gpus > 0 else 0.0, mode
-        )
+        gpu = 1.0 if gpus > 0 else 0.0
+        return Layout(1, actors * selfplay.episodes_per_batch, free, max(1, int(free)), 1, gpu, mode)
     share = free / actors  # fractional when there are more actors than cores: they take turns
-    return Layout(actors, selfplay.episodes_per_batch, share, max(1, int(share)), 0.0, mode)
+    threads = max(1, int(share))
+    return Layout(actors, selfplay.episodes_per_batch, share, threads, threads, 0.0, mode)
 
 
 class ActorPool:
@@ -72,7 +73,9 @@ class ActorPool:
             runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
         )
         self.actors = [
-            SelfPlayActor.options(**options).remote(spec, net, mcts, layout.episodes, seed + i, buffer)
+            SelfPlayActor.options(**options).remote(
+                spec, net, mcts, layout.episodes, seed + i, layout.groups, buffer
+            )
             for i in range(layout.actors)
         ]
         self.pids = dict(zip(self.actors, ray.get([a.pid.remote() for a in self.actors])))

@@ -41,8 +41,8 @@ from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig
 from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
 from rllock.errors import RLLockError
-from rllock.mcts import Searcher
-from rllock.network import PolicyValueNet, fit_canvas
+from rllock.mcts import searchers
+from rllock.network import fit_canvas
 
 log = logging.getLogger(__name__)
 
@@ -124,9 +124,8 @@ class _Run:
         self.pacing = Pacing.of(config)
         self.began = began
         self.schedule = Schedule.start(began, config)
-        self.searcher = Searcher(
-            PolicyValueNet(config.net), config.mcts, task.piece_size, config.validation_episodes
-        )
+        # Validation runs in this process beside the learner: one lockstep group.
+        self.searchers = searchers(config.net, config.mcts, task.piece_size, config.validation_episodes, 1)
         self.interrupted = False
         self.lag = 0
         self.batch_seconds: float | None = None  # the last self-play batch's time, to estimate a validation
@@ -327,7 +326,7 @@ class _Run:
         c, step, task = self.counters, self.learner.step, self.task
         seed = self.config.seed + 7
         episodes, seconds = evaluate(
-            self.searcher, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
+            self.searchers, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
         )
         self.validation_seconds = seconds
         wins = [e for e in episodes if e.success]

@@ -144,27 +144,30 @@ def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_can
 
 
 def candidates_many(
-    task: Task, states: list[State], seeds: np.ndarray, *, num_samples: int, max_candidates: int
+    task: Task,
+    states: list[State],
+    seeds: np.ndarray,
+    *,
+    num_samples: int,
+    max_candidates: int,
+    parallel: bool = True,
 ) -> tuple[list[np.ndarray], int]:
-    """`candidates` for several states in one compiled call (one thread per state); also the raw
-    samples drawn in all."""
+    """`candidates` for several states in one compiled call (with `parallel`, one numba thread per
+    state; without, all on the calling thread); also the raw samples drawn in all."""
     topo = task.topology
+    topo_arrays = (topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index)
     labels = np.stack([s.labels for s in states])
     pieces = np.array([s.placed + 1 for s in states], np.int64)
-    out, found, drawn = fast.candidates_many(
-        topo.nbr,
-        topo.ray,
-        topo.line,
-        topo.n_lines,
-        topo.coords,
-        topo.index,
+    expand = fast.candidates_many if parallel else fast.candidates_serial
+    out, found, drawn = expand(
+        topo_arrays,
         labels,
         pieces,
+        np.asarray(seeds, np.int64),
         task.piece_size,
         num_samples,
         max_candidates,
         task.removal == "path",
-        np.asarray(seeds, np.int64),
     )
     return [out[b, : found[b]] for b in range(len(states))], int(drawn.sum())
 

@@ -538,46 +538,54 @@ def node_candidates(
     return k, s
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def candidates_many(
-    nbr,
-    ray,
-    line,
-    n_lines,
-    coords,
-    index,
-    labels,
-    pieces,
-    n,
-    num_samples,
-    max_candidates,
-    removal_path,
-    seeds,
+@njit(cache=True, nogil=True)
+def _candidates_row(
+    topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path, out, found, drawn, b
 ):
-    """`node_candidates` for B nodes at once, one thread per node: labels int16[B, N], pieces and seeds
-    int64[B] -> (candidates int32[B, max_candidates, n], counts int32[B], raw samples drawn int64[B]).
-    Each node seeds its own thread's generator, so the result does not depend on the thread count."""
-    batch = labels.shape[0]
-    out = np.zeros((batch, max_candidates, n), np.int32)
-    found = np.zeros(batch, np.int32)
-    drawn = np.zeros(batch, np.int64)
-    for b in prange(batch):
-        k, s = node_candidates(
-            nbr,
-            ray,
-            line,
-            n_lines,
-            coords,
-            index,
-            labels[b],
-            pieces[b],
-            n,
-            num_samples,
-            max_candidates,
-            removal_path,
-            seeds[b],
-            out[b],
+    nbr, ray, line, n_lines, coords, index = topo
+    found[b], drawn[b] = node_candidates(
+        nbr,
+        ray,
+        line,
+        n_lines,
+        coords,
+        index,
+        labels[b],
+        pieces[b],
+        n,
+        num_samples,
+        max_candidates,
+        removal_path,
+        seeds[b],
+        out[b],
+    )
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def candidates_many(topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path):
+    """`node_candidates` for B nodes at once, one thread per node. topo = (nbr, ray, line, n_lines,
+    coords, index); labels int16[B, N], pieces and seeds int64[B] -> (candidates int32[B, max_candidates,
+    n], counts int32[B], raw samples drawn int64[B]). Each node seeds its own thread's generator, so the
+    result does not depend on the thread count."""
+    out = np.zeros((labels.shape[0], max_candidates, n), np.int32)
+    found = np.zeros(labels.shape[0], np.int32)
+    drawn = np.zeros(labels.shape[0], np.int64)
+    for b in prange(labels.shape[0]):
+        _candidates_row(
+            topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path, out, found, drawn, b
         )
-        found[b] = k
-        drawn[b] = s
+    return out, found, drawn
+
+
+@njit(cache=True, nogil=True)
+def candidates_serial(topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path):
+    """`candidates_many` on the calling thread alone: for callers that run several lockstep groups in
+    threads of their own (numba's default threading layer aborts on concurrent parallel launches)."""
+    out = np.zeros((labels.shape[0], max_candidates, n), np.int32)
+    found = np.zeros(labels.shape[0], np.int32)
+    drawn = np.zeros(labels.shape[0], np.int64)
+    for b in range(labels.shape[0]):
+        _candidates_row(
+            topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path, out, found, drawn, b
+        )
     return out, found, drawn

@@ -1,14 +1,15 @@
 """Batched inference from a checkpoint: the paper's protocol (batches of episodes until C valid
 assemblies or the time limit), every result verified before it is written.
 
-Round r of a protocol with seed s plays one lockstep batch with PRNG key fold_in(key(s), r) and node
-store seed s * 100003 + r, so the same rounds give the same episodes whether they run here
-(`generate`) or spread over Ray actors (`orchestration.generate`).
+Round r of a protocol with seed s plays one batch with PRNG key fold_in(key(s), r) and node store seed
+s * 100003 + r, split into lockstep groups searched in threads: one per core here (`generate`), one per
+Ray actor of one core (`orchestration.generate`). The same seed and group count give the same episodes.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,8 +21,8 @@ from rllock import checkpoint as ckpt
 from rllock.assembly import PictureWriter, write_assembly
 from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
-from rllock.mcts import Episode, Searcher, play
-from rllock.network import PolicyValueNet, init_params
+from rllock.mcts import Episode, Searcher, play_groups, searchers
+from rllock.network import init_params
 
 log = logging.getLogger(__name__)
 
@@ -70,14 +71,14 @@ def untrained_like(policy: Policy, seed: int) -> Policy:
     )
 
 
-def searcher_for(policy: Policy, batch: int) -> Searcher:
-    return Searcher(PolicyValueNet(policy.net), policy.mcts, policy.task.piece_size, batch)
+def searchers_for(policy: Policy, batch: int, groups: int) -> list[Searcher]:
+    return searchers(policy.net, policy.mcts, policy.task.piece_size, batch, groups)
 
 
-def play_round(searcher: Searcher, policy: Policy, seed: int, round_: int) -> list[Episode]:
+def play_round(group_searchers: list[Searcher], policy: Policy, seed: int, round_: int) -> list[Episode]:
     """Round `round_` of the protocol with seed `seed` (module docstring)."""
     key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
-    return play(searcher, policy.params, policy.task, key, seed=seed * 100_003 + round_)
+    return play_groups(group_searchers, policy.params, policy.task, key, seed=seed * 100_003 + round_)
 
 
 @dataclass(frozen=True)
@@ -179,13 +180,14 @@ def generate(
     """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
     seconds (a round that has started finishes), in this process."""
     start = time.perf_counter()
-    searcher = searcher_for(policy, batch)
+    # One lockstep group per core: their samplers and networks overlap (rllock.mcts.play_groups).
+    group_searchers = searchers_for(policy, batch, os.cpu_count() or 1)
     collector = Collector(
         policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
     )
     round_ = 0
     while not collector.done and time.perf_counter() - start < time_limit:
         t0 = time.perf_counter()
-        collector.take(play_round(searcher, policy, seed, round_), time.perf_counter() - t0)
+        collector.take(play_round(group_searchers, policy, seed, round_), time.perf_counter() - t0)
         round_ += 1
     return collector.result(time.perf_counter() - start)

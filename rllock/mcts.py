@@ -16,6 +16,7 @@ untrained network then tells a live child from a dead end one level earlier.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import jax
@@ -24,7 +25,7 @@ import mctx
 import numpy as np
 from jax.experimental import io_callback
 
-from rllock.config import MCTSConfig
+from rllock.config import MCTSConfig, NetConfig
 from rllock.env import State, Task, apply_chunk, candidates_many, compact_dtypes, initial_state, is_solved
 from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
 
@@ -45,9 +46,12 @@ class TimeSplit:
 
 
 class NodeStore:
-    """Search nodes on the host: states, candidate chunks (voxel numbers), terminal flags, children."""
+    """Search nodes on the host: states, candidate chunks (voxel numbers), terminal flags, children.
+    With `parallel`, a simulation's expansions are spread over numba's threads; without, they run on
+    the calling thread (for several stores searched in threads of their own)."""
 
-    def __init__(self, task: Task, config: MCTSConfig, canvas: int, seed: int):
+    def __init__(self, task: Task, config: MCTSConfig, canvas: int, seed: int, parallel: bool = True):
+        self.parallel = parallel
         self.task = task
         self.config = config
         self.canvas_idx = canvas_index(task, canvas)
@@ -71,6 +75,7 @@ class NodeStore:
                 seeds[live],
                 num_samples=self.config.raw_samples,
                 max_candidates=self.config.candidates,
+                parallel=self.parallel,
             )
             self.times.sampling += time.perf_counter() - start
             for i, c in zip(live, found):
@@ -241,12 +246,19 @@ class Episode:
 
 
 def play(
-    searcher: Searcher, params, task: Task, key: jax.Array, *, seed: int, times: TimeSplit | None = None
+    searcher: Searcher,
+    params,
+    task: Task,
+    key: jax.Array,
+    *,
+    seed: int,
+    times: TimeSplit | None = None,
+    parallel: bool = True,
 ) -> list[Episode]:
     """`searcher.batch` episodes in lockstep from the empty state; each decision takes the search's
-    action. `times`, when given, accumulates where the time went."""
+    action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
     batch = searcher.batch
-    store = NodeStore(task, searcher.config, searcher.canvas, seed)
+    store = NodeStore(task, searcher.config, searcher.canvas, seed, parallel)
     roots = np.array(store.add_many([initial_state(task) for _ in range(batch)]), np.int32)
     trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
     active = np.array([not store.terminal(r) for r in roots])
@@ -261,6 +273,56 @@ def play(
     if times is not None:
         times.add(store.times)
     return [_episode(task, store, trace[b], int(roots[b]), searcher.config.candidates) for b in range(batch)]
+
+
+def play_groups(
+    searchers: list[Searcher],
+    params,
+    task: Task,
+    key: jax.Array,
+    *,
+    seed: int,
+    times: TimeSplit | None = None,
+) -> list[Episode]:
+    """Several lockstep groups (one per searcher) played at once, one thread each: while one group's
+    network runs in XLA, another's sampler runs in numba, both without the GIL, so a worker with T cores
+    keeps them all busy with T groups. One group runs on its own with the sampler spread over numba's
+    threads. Group g uses key fold_in(key, g) and node seed seed + g; `times` sums over the groups
+    (thread-seconds)."""
+    if len(searchers) == 1:
+        return play(searchers[0], params, task, key, seed=seed, times=times)
+    splits = [TimeSplit() for _ in searchers]
+
+    def group(g: int) -> list[Episode]:
+        return play(
+            searchers[g],
+            params,
+            task,
+            jax.random.fold_in(key, g),
+            seed=seed + g,
+            times=splits[g],
+            parallel=False,
+        )
+
+    with ThreadPoolExecutor(len(searchers)) as pool:
+        episodes = [e for batch in pool.map(group, range(len(searchers))) for e in batch]
+    if times is not None:
+        for split in splits:
+            times.add(split)
+    return episodes
+
+
+def searchers(
+    net: NetConfig, config: MCTSConfig, piece_size: int, episodes: int, groups: int
+) -> list[Searcher]:
+    """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
+    return [Searcher(PolicyValueNet(net), config, piece_size, size) for size in group_sizes(episodes, groups)]
+
+
+def group_sizes(episodes: int, groups: int) -> list[int]:
+    """`episodes` split into at most `groups` lockstep groups of nearly equal size."""
+    groups = max(1, min(groups, episodes))
+    return [episodes // groups + (g < episodes % groups) for g in range(groups)]
 
 
 def _episode(task: Task, store: NodeStore, steps: list[tuple[int, np.ndarray]], last: int, m: int) -> Episode:

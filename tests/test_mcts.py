@@ -5,7 +5,16 @@ import numpy as np
 import pytest
 
 from rllock.env import final_labels, initial_state, make_task
-from rllock.mcts import MCTSConfig, NodeStore, Searcher, bounded_value, play
+from rllock.mcts import (
+    MCTSConfig,
+    NodeStore,
+    Searcher,
+    bounded_value,
+    group_sizes,
+    play,
+    play_groups,
+    searchers,
+)
 from rllock.network import NetConfig, PolicyValueNet, init_params
 from rllock.verifier import verify_labels
 
@@ -70,3 +79,24 @@ def test_successful_episodes_are_valid_assemblies(episodes):
     for e in eps:
         if e.success:
             assert verify_labels(task.topology.to_grid(final_labels(task, e.final))).valid
+
+
+def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
+    """play_groups runs lockstep groups concurrently (XLA and numba without the GIL); the episodes must
+    not depend on that: each group's are those of a plain play with its own key and seed."""
+    task = make_task("box:4x4x2", 3)
+    config = NetConfig(canvas=4, features=(4, 8))
+    params = init_params(config, jax.random.PRNGKey(0))
+    group_searchers = searchers(config, SMALL, task.piece_size, 5, 2)
+    assert [s.batch for s in group_searchers] == [3, 2] and group_sizes(5, 9) == [1] * 5
+    key = jax.random.PRNGKey(4)
+    together = play_groups(group_searchers, params, task, key, seed=11)
+    apart = [
+        e
+        for g, s in enumerate(group_searchers)
+        for e in play(s, params, task, jax.random.fold_in(key, g), seed=11 + g, parallel=False)
+    ]
+    assert len(together) == 5
+    for a, b in zip(together, apart):
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_allclose(a.pi, b.pi)

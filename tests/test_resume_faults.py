@@ -141,3 +141,18 @@ def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     assert proc.returncode == 130, out
     assert f"rllock train --resume {logdir}" in out and "Traceback" not in out
     assert _steps(logdir)[-1] >= before and (logdir / "replay.npz").exists()
+
+
+def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun(tmp_path):
+    """Slow validations (many episodes, many simulations) must be skipped, not run past the budget."""
+    logdir = tmp_path / "run"
+    started = time.monotonic()
+    slow = [a for a in TINY]
+    slow[slow.index("--validation-episodes") + 1] = "512"
+    slow[slow.index("--simulations") + 1] = "32"
+    proc = _train(*slow, "--minutes", "1", "--logdir", str(logdir))
+    out, _ = proc.communicate(timeout=300)
+    elapsed = time.monotonic() - started
+    assert proc.returncode == 0, out
+    assert elapsed <= 60 + 30, elapsed
+    assert "validation skipped" in out and _steps(logdir) and _steps(logdir)[-1] > 0

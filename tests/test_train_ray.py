@@ -122,3 +122,27 @@ def test_a_used_logdir_is_refused(run):
     logdir, _ = run
     with pytest.raises(RLLockError, match="already holds"):
         train(TrainConfig(minutes=0.1, logdir=str(logdir), **TINY))
+
+
+def test_generate_on_ray_actors_writes_verified_distinct_assemblies(run, tmp_path):
+    logdir, _ = run
+    out = tmp_path / "gen"
+    code, stdout, err = run_cli(
+        "generate",
+        "--checkpoint",
+        str(logdir),
+        "--count",
+        "2",
+        "--batch",
+        "8",
+        "--time-limit",
+        "120",
+        "--actors",
+        "2",
+        "--out",
+        str(out),
+    )
+    assert code == 0, err
+    docs = [json.loads((out / f"assembly_00{i}" / "assembly.json").read_text()) for i in (1, 2)]
+    assert all(d["verification"]["valid"] and d["method"]["name"] == "rl-lock" for d in docs)
+    assert docs[0]["labels"] != docs[1]["labels"] and (out / "assembly_001" / "assembly.png").exists()
