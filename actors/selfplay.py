@@ -21,7 +21,7 @@ import ray
 
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
-from rllock.mcts import Episode, Searcher, TimeSplit, play_groups, searchers
+from rllock.mcts import Episode, Searcher, TimeSplit, derive_seed, play_groups, searchers
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -31,7 +31,9 @@ def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
         "NUMBA_NUM_THREADS": str(threads),
         "OMP_NUM_THREADS": "1",
     }
-    if not gpu:
+    if gpu:  # the learner in the driver shares the GPU (the CLI caps it at half its memory)
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = "0.4"
+    else:
         env["JAX_PLATFORMS"] = "cpu"
     return env
 
@@ -109,7 +111,7 @@ class SelfPlayWorker:
             self.params,
             self.task,
             sub,
-            seed=self.seed * 1_000_003 + self.batches,
+            seed=derive_seed(self.seed, self.batches),
             times=times,
         )
         self.batches += 1

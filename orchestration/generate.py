@@ -1,7 +1,7 @@
 """`rllock generate --actors N [--address HOST:PORT]`: the inference protocol's rounds spread over N Ray
-actors, locally or on a cluster. The driver hands out rounds (the same rounds as in-process generation,
-see `rllock.inference`), deduplicates the finished ones, verifies and writes them. Each actor loads the
-parameters on whatever device it has (they travel as host arrays)."""
+actors of one CPU core each, locally or on a cluster. The driver hands out rounds (seeded as in-process
+generation, see `rllock.inference`), deduplicates the finished ones, verifies and writes them. The
+parameters travel as host arrays, so a checkpoint trained on any device runs there."""
 
 from __future__ import annotations
 

@@ -95,13 +95,33 @@ class Schedule:
         return seconds is not None and now + seconds <= self.deadline
 
 
+COMPILE_S = 20.0
+"""Allowance for compiling the validation's search the first time (a lockstep batch of its own size)."""
+FINAL_SHARE = 0.25
+"""The final validation may take at most this share of the budget; a dearer one is skipped."""
+
+
 def validation_estimate(
-    batch_seconds: float | None, batch_episodes: int, episodes: int, last_validation_s: float | None
+    batch_seconds: float | None,
+    batch_episodes: int,
+    groups: int,
+    episodes: int,
+    last_validation_s: float | None,
 ) -> float | None:
-    """Expected seconds of a validation of `episodes` lockstep episodes: the last one's time when there
-    was one, else scaled from a self-play batch (lockstep cost grows about linearly with the batch)."""
+    """Expected seconds of a validation of `episodes` lockstep episodes in one group on one core: the last
+    one's time when there was one, else scaled from a self-play batch of `batch_episodes` episodes played
+    in `groups` groups on as many cores (lockstep cost grows about linearly with the episodes), plus the
+    first compile."""
     if last_validation_s is not None:
         return last_validation_s
     if batch_seconds is None:
         return None
-    return batch_seconds * episodes / max(batch_episodes, 1)
+    return batch_seconds * groups * episodes / max(batch_episodes, 1) + COMPILE_S
+
+
+def final_reserve(estimate: float | None, config: TrainConfig) -> float:
+    """Seconds to stop self-play early by, so that the final validation fits the budget: its estimate
+    when that is known and at most FINAL_SHARE of the budget, else 0 (the validation is then skipped)."""
+    if estimate is None or estimate > FINAL_SHARE * 60 * config.minutes:
+        return 0.0
+    return estimate

@@ -8,12 +8,19 @@ import os
 from dataclasses import dataclass
 
 import ray
-from ray.exceptions import RayActorError
+from ray.exceptions import GetTimeoutError, RayActorError
 
 from actors.selfplay import PlayStats, SelfPlayActor, TaskSpec, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
+from rllock.errors import RLLockError
 
 log = logging.getLogger(__name__)
+
+PLACEMENT_TIMEOUT_S = 300.0
+
+
+def largest_node_cpus() -> float:
+    return max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n.get("Alive")), default=1.0)
 
 
 def start_ray(address: str | None) -> bool:
@@ -41,8 +48,16 @@ class Layout:
     mode: str  # "per-actor" or "lockstep"
 
 
-def plan_layout(selfplay: SelfPlayConfig, *, cpus: float, gpus: float, reserved_cpus: float) -> Layout:
-    """The layout for a cluster with `cpus` and `gpus` (`reserved_cpus` stay for the learner).
+def plan_layout(
+    selfplay: SelfPlayConfig,
+    *,
+    cpus: float,
+    gpus: float,
+    reserved_cpus: float,
+    node_cpus: float | None = None,
+) -> Layout:
+    """The layout for a cluster with `cpus` and `gpus` (`reserved_cpus` stay for the learner), whose
+    largest node has `node_cpus` (default: all of them, one node).
 
     per-actor: `actors` actors (default one per free core), each on its share of the free cores, with one
     lockstep group per core. lockstep: one worker that plays all the actors' episodes in one lockstep
@@ -54,7 +69,8 @@ def plan_layout(selfplay: SelfPlayConfig, *, cpus: float, gpus: float, reserved_
         mode = "lockstep" if gpus > 0 else "per-actor"
     if mode == "lockstep":
         gpu = 1.0 if gpus > 0 else 0.0
-        return Layout(1, actors * selfplay.episodes_per_batch, free, max(1, int(free)), 1, gpu, mode)
+        worker = min(free, node_cpus or free)  # one worker: it must fit on one node
+        return Layout(1, actors * selfplay.episodes_per_batch, worker, max(1, int(worker)), 1, gpu, mode)
     share = free / actors  # fractional when there are more actors than cores: they take turns
     threads = max(1, int(share))
     return Layout(actors, selfplay.episodes_per_batch, share, threads, threads, 0.0, mode)
@@ -78,7 +94,15 @@ class ActorPool:
             )
             for i in range(layout.actors)
         ]
-        self.pids = dict(zip(self.actors, ray.get([a.pid.remote() for a in self.actors])))
+        try:
+            pids = ray.get([a.pid.remote() for a in self.actors], timeout=PLACEMENT_TIMEOUT_S)
+        except GetTimeoutError:
+            raise RLLockError(
+                f"the self-play actors could not start within {PLACEMENT_TIMEOUT_S:.0f} s: does a node "
+                f"of the cluster have {layout.cpus:g} free CPUs{' and a GPU' if layout.gpus else ''}? "
+                f"(see --actors, --evaluation)"
+            ) from None
+        self.pids = dict(zip(self.actors, pids))
         self.inflight: dict = {}
 
     def submit(self, actor, weights: list, version: int) -> None:

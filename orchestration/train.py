@@ -30,12 +30,13 @@ from pathlib import Path
 import jax
 import numpy as np
 import ray
+from ray.exceptions import RayTaskError
 
 from actors.selfplay import TaskSpec, evaluate
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
-from orchestration.pacing import Pacing, Schedule, validation_estimate
-from orchestration.pool import ActorPool, plan_layout, start_ray
+from orchestration.pacing import Pacing, Schedule, final_reserve, validation_estimate
+from orchestration.pool import ActorPool, largest_node_cpus, plan_layout, start_ray
 from orchestration.recorder import Counters, Recorder, best_rank, validation_rank
 from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig
@@ -151,12 +152,19 @@ class _Run:
         )
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
-            log.info(
-                "replay buffer restored: %d transitions", ray.get(self.buffer.restore.remote(str(snapshot)))
-            )
+            try:
+                restored = ray.get(self.buffer.restore.remote(str(snapshot)))
+            except RayTaskError as exc:  # the buffer actor's own error, without Ray's traceback around it
+                cause = exc.cause if isinstance(exc.cause, RLLockError) else None
+                raise RLLockError(str(cause or exc).splitlines()[0]) from None
+            log.info("replay buffer restored: %d transitions", restored)
         resources = ray.cluster_resources()
         layout = plan_layout(
-            config.selfplay, cpus=resources.get("CPU", 1), gpus=resources.get("GPU", 0), reserved_cpus=1
+            config.selfplay,
+            cpus=resources.get("CPU", 1),
+            gpus=resources.get("GPU", 0),
+            reserved_cpus=1,
+            node_cpus=largest_node_cpus(),
         )
         pool = ActorPool(
             TaskSpec.of(self.task),
@@ -181,9 +189,10 @@ class _Run:
         weights = [ray.put(jax.device_get(learner.params))]
         pool.submit_all(weights, c.version)
         start, base_seconds = time.monotonic(), c.seconds
+        self.layout = layout
         while (
             not self.interrupted
-            and not self.schedule.over(time.monotonic())
+            and not self.schedule.over(time.monotonic() + final_reserve(self._validation_estimate(), config))
             and not self.pacing.reached_max(learner.step)
         ):
             oldest = pool.oldest_version()
@@ -305,13 +314,17 @@ class _Run:
         ray.get(self.buffer.snapshot.remote(str(self.recorder.logdir / "replay.npz")))
         self.recorder.checkpoint(self.learner.step, self.learner.state(), self.last_score, self.counters)
 
-    def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
-        estimate = validation_estimate(
+    def _validation_estimate(self) -> float | None:
+        return validation_estimate(
             self.batch_seconds,
-            self.config.selfplay.episodes_per_batch,
+            self.layout.episodes,
+            self.layout.groups,
             self.config.validation_episodes,
             self.validation_seconds,
         )
+
+    def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
+        estimate = self._validation_estimate()
         if not self.schedule.fits(now, estimate):
             log.info(
                 "%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",

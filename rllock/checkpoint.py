@@ -19,7 +19,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from rllock.config import TrainConfig, from_json
+from rllock.config import TrainConfig, from_flat, from_json
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
 from rllock.shapes import from_xfastest, to_xfastest
@@ -34,10 +34,14 @@ def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = 
     `minutes` more to train (and a new step limit, when given)."""
     for step in saved_steps(logdir / "checkpoints")[::-1]:
         try:
-            doc = read_meta(logdir / "checkpoints" / str(step))["config"]
-        except (RLLockError, KeyError):
+            meta = read_meta(logdir / "checkpoints" / str(step))
+        except RLLockError:
             continue
-        config = from_json(TrainConfig, doc)
+        config = (
+            from_json(TrainConfig, meta["config"])
+            if "config" in meta
+            else from_flat(TrainConfig, meta["train"])
+        )
         limit = max_learner_steps if max_learner_steps is not None else config.max_learner_steps
         return dataclasses.replace(config, logdir=str(logdir), minutes=minutes, max_learner_steps=limit)
     raise RLLockError(

@@ -255,6 +255,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
     out = _fresh_out(args.out)
     if args.actors < 0:
         raise RLLockError(f"--actors must be >= 0, got {args.actors}")
+    if args.address and not args.actors:
+        raise RLLockError("--address needs --actors N: generation joins a Ray cluster only with actors")
     policy = _load_for(args)
     settings = dict(
         count=args.count,
@@ -506,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--evaluation",
         choices=EVALUATION_MODES,
         default="auto",
-        help=field_docs(SelfPlayConfig)["evaluation"],
+        help=field_docs(SelfPlayConfig).get("evaluation"),
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_selfplay)

@@ -155,6 +155,8 @@ class TrainConfig:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
         if self.pieces < 2:
             raise RLLockError(f"--pieces must be at least 2, got {self.pieces}")
+        if self.net.value_hidden < 1 or self.mcts.gumbel_scale < 0:
+            raise RLLockError("--value-hidden must be at least 1 and --gumbel-scale at least 0")
         if self.net.canvas is not None and self.net.canvas < 1:
             raise RLLockError(f"--canvas must be positive, got {self.net.canvas}")
         if (
@@ -196,6 +198,19 @@ def from_json(cls: type, doc: dict) -> Any:
         elif isinstance(value, list):
             value = tuple(value)
         values[f.name] = value
+    return cls(**values)
+
+
+def from_flat(cls: type, doc: dict) -> Any:
+    """The config of class `cls` from a flat document, one key per leaf field (how checkpoints of
+    metadata version 1 saved the run's settings)."""
+    values = {}
+    for f in dataclasses.fields(cls):
+        sub = _dataclass_type(f)
+        if sub is not None:
+            values[f.name] = from_flat(sub, doc)
+        elif f.name in doc:
+            values[f.name] = tuple(doc[f.name]) if isinstance(doc[f.name], list) else doc[f.name]
     return cls(**values)
 
 

@@ -22,8 +22,11 @@ from rllock.config import _dataclass_type
 
 @functools.cache
 def field_docs(cls: type) -> dict[str, str]:
-    """{field name: its docstring} of a dataclass, read from its source."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    """{field name: its docstring} of a dataclass, read from its source (none where it is not installed)."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except OSError:
+        return {}
     body = tree.body[0].body  # type: ignore[attr-defined]
     docs = {}
     for node, after in zip(body, body[1:]):

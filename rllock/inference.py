@@ -1,9 +1,10 @@
 """Batched inference from a checkpoint: the paper's protocol (batches of episodes until C valid
 assemblies or the time limit), every result verified before it is written.
 
-Round r of a protocol with seed s plays one batch with PRNG key fold_in(key(s), r) and node store seed
-s * 100003 + r, split into lockstep groups searched in threads: one per core here (`generate`), one per
-Ray actor of one core (`orchestration.generate`). The same seed and group count give the same episodes.
+Round r of a protocol with seed s plays one batch with PRNG key fold_in(key(s), r) and node seed
+derive_seed(s, r), split into lockstep groups searched in threads (`local_groups`: one per core on a
+CPU, one on a GPU; one per Ray actor of one core in `orchestration.generate`). The same seed and group
+count give the same episodes; on Ray, which rounds finish first also decides which assemblies are kept.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from rllock import checkpoint as ckpt
 from rllock.assembly import PictureWriter, write_assembly
 from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
-from rllock.mcts import Episode, Searcher, play_groups, searchers
+from rllock.mcts import Episode, Searcher, derive_seed, play_groups, searchers
 from rllock.network import init_params
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,12 @@ def untrained_like(policy: Policy, seed: int) -> Policy:
     )
 
 
+def local_groups() -> int:
+    """Lockstep groups for a batch in this process: one per core on a CPU, where the groups' samplers
+    and networks overlap (rllock.mcts.play_groups); one on a GPU, which wants the whole batch at once."""
+    return (os.cpu_count() or 1) if jax.default_backend() == "cpu" else 1
+
+
 def searchers_for(policy: Policy, batch: int, groups: int) -> list[Searcher]:
     return searchers(policy.net, policy.mcts, policy.task.piece_size, batch, groups)
 
@@ -78,7 +85,7 @@ def searchers_for(policy: Policy, batch: int, groups: int) -> list[Searcher]:
 def play_round(group_searchers: list[Searcher], policy: Policy, seed: int, round_: int) -> list[Episode]:
     """Round `round_` of the protocol with seed `seed` (module docstring)."""
     key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
-    return play_groups(group_searchers, policy.params, policy.task, key, seed=seed * 100_003 + round_)
+    return play_groups(group_searchers, policy.params, policy.task, key, seed=derive_seed(seed, round_))
 
 
 @dataclass(frozen=True)
@@ -180,8 +187,7 @@ def generate(
     """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
     seconds (a round that has started finishes), in this process."""
     start = time.perf_counter()
-    # One lockstep group per core: their samplers and networks overlap (rllock.mcts.play_groups).
-    group_searchers = searchers_for(policy, batch, os.cpu_count() or 1)
+    group_searchers = searchers_for(policy, batch, local_groups())
     collector = Collector(
         policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
     )

@@ -287,7 +287,7 @@ def play_groups(
     """Several lockstep groups (one per searcher) played at once, one thread each: while one group's
     network runs in XLA, another's sampler runs in numba, both without the GIL, so a worker with T cores
     keeps them all busy with T groups. One group runs on its own with the sampler spread over numba's
-    threads. Group g uses key fold_in(key, g) and node seed seed + g; `times` sums over the groups
+    threads. Group g uses key fold_in(key, g) and node seed derive_seed(seed, g); `times` sums over the groups
     (thread-seconds)."""
     if len(searchers) == 1:
         return play(searchers[0], params, task, key, seed=seed, times=times)
@@ -299,7 +299,7 @@ def play_groups(
             params,
             task,
             jax.random.fold_in(key, g),
-            seed=seed + g,
+            seed=derive_seed(seed, g),
             times=splits[g],
             parallel=False,
         )
@@ -317,6 +317,12 @@ def searchers(
 ) -> list[Searcher]:
     """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
     return [Searcher(PolicyValueNet(net), config, piece_size, size) for size in group_sizes(episodes, groups)]
+
+
+def derive_seed(*parts: int) -> int:
+    """A seed for the stream named by `parts` (run seed, round, group...): distinct tuples give
+    independent streams, unlike sums or products of the parts, which collide across rounds and groups."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] >> 1)
 
 
 def group_sizes(episodes: int, groups: int) -> list[int]:

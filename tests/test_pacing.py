@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from orchestration.pacing import RESERVE_S, Pacing, Schedule, validation_estimate
+from orchestration.pacing import COMPILE_S, RESERVE_S, Pacing, Schedule, final_reserve, validation_estimate
 from rllock.config import LearnerConfig, TrainConfig
 
 PACING = Pacing(warmup=64, batch_size=64, replay_ratio=4.0, max_policy_lag=4, max_learner_steps=10)
@@ -45,6 +45,15 @@ def test_schedule_keeps_the_budget_and_checkpoints_right_after_the_first_step():
 
 
 def test_validation_estimates_scale_a_selfplay_batch_or_reuse_the_last_validation():
-    assert validation_estimate(None, 8, 64, None) is None
-    assert validation_estimate(10.0, 8, 64, None) == 80.0
-    assert validation_estimate(10.0, 8, 64, 33.0) == 33.0
+    assert validation_estimate(None, 8, 1, 64, None) is None
+    assert validation_estimate(10.0, 8, 1, 64, None) == 80.0 + COMPILE_S
+    # Two groups on two cores: one core alone takes twice as long per episode.
+    assert validation_estimate(10.0, 8, 2, 64, None) == 160.0 + COMPILE_S
+    assert validation_estimate(10.0, 8, 2, 64, 33.0) == 33.0
+
+
+def test_the_final_validation_gets_its_time_only_when_it_is_a_small_share_of_the_budget():
+    config = TrainConfig(shape="cube4", pieces=5, minutes=4.0)
+    assert final_reserve(None, config) == 0.0
+    assert final_reserve(50.0, config) == 50.0
+    assert final_reserve(61.0, config) == 0.0  # over a quarter of 240 s: skipped, training keeps the time

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig, from_json, to_json
+from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig, from_flat, from_json, to_json
 from rllock.flags import add_flags, field_docs, from_flags
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,3 +102,39 @@ def test_the_saved_config_round_trips():
         selfplay=SelfPlayConfig(actors=3),
     )
     assert from_json(TrainConfig, to_json(config)) == config
+
+
+def test_version_one_checkpoints_flat_settings_become_the_nested_config():
+    flat = {
+        "shape": "cube4",
+        "pieces": 8,
+        "canvas": 4,
+        "features": [8, 16],
+        "simulations": 64,
+        "actors": 2,
+        "episodes_per_batch": 4,
+        "learning_rate": 3e-4,
+        "min_buffer": 256,
+        "unknown_old_field": 1,
+    }
+    config = from_flat(TrainConfig, flat)
+    assert config.net == NetConfig(canvas=4, features=(8, 16)) and config.mcts.simulations == 64
+    assert config.selfplay == SelfPlayConfig(actors=2, episodes_per_batch=4)
+    assert config.learner.learning_rate == 3e-4 and config.min_buffer == 256
+
+
+def test_layouts_give_each_actor_its_share_of_the_cores():
+    from orchestration.pool import plan_layout
+
+    per_actor = plan_layout(SelfPlayConfig(), cpus=16, gpus=0, reserved_cpus=1)
+    assert (per_actor.actors, per_actor.threads, per_actor.groups, per_actor.mode) == (15, 1, 1, "per-actor")
+    one = plan_layout(SelfPlayConfig(actors=1), cpus=2, gpus=0, reserved_cpus=0)
+    assert (one.cpus, one.threads, one.groups) == (2, 2, 2)
+    crowded = plan_layout(SelfPlayConfig(actors=4), cpus=2, gpus=0, reserved_cpus=1)
+    assert crowded.cpus == 0.25 and crowded.threads == 1  # more actors than cores: they share
+    gpu = plan_layout(SelfPlayConfig(), cpus=16, gpus=1, reserved_cpus=1)
+    assert (gpu.mode, gpu.actors, gpu.episodes, gpu.gpus, gpu.groups) == ("lockstep", 1, 15 * 8, 1.0, 1)
+    cluster = plan_layout(
+        SelfPlayConfig(evaluation="lockstep"), cpus=64, gpus=1, reserved_cpus=1, node_cpus=16
+    )
+    assert cluster.cpus == 16 and cluster.threads == 16  # one worker fits on one node
