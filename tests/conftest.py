@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,13 +16,3 @@ def data() -> Path:
     from rllock.shapes import data_path
 
     return data_path("")
-
-
-def run_cli(*args: str, timeout: float = 300):
-    """Run the installed `rllock` command in a subprocess: (exit code, stdout, stderr)."""
-    import subprocess
-
-    proc = subprocess.run(
-        [sys.executable, "-m", "rllock.cli", *args], capture_output=True, text=True, timeout=timeout
-    )
-    return proc.returncode, proc.stdout, proc.stderr

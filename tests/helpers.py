@@ -1,10 +1,16 @@
-"""Random states and chunks for the equivalence tests."""
+"""Shared test helpers: random states and chunks for the equivalence tests, the one tiny training
+config, and running the `rllock` command."""
 
 from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
 
 import numpy as np
 
 from rllock import reference as ref
+from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
 from rllock.env import State, Task, apply_chunk, candidates, initial_state
 
 
@@ -44,3 +50,51 @@ def random_valid_states(task: Task, rng: np.random.Generator, episodes: int):
             if len(cands) == 0:
                 break
             state = apply_chunk(state, cands[rng.integers(len(cands))])
+
+
+# The tiny training task every Ray test uses: seconds per learner step, not minutes.
+TINY = TrainConfig(
+    shape="box:4x4x2",
+    pieces=3,
+    net=NetConfig(features=(4, 8)),
+    mcts=MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8),
+    learner=LearnerConfig(learning_rate=1e-3, batch_size=16),
+    selfplay=SelfPlayConfig(actors=1, episodes_per_batch=4),
+    min_buffer=8,
+    publish_every=5,
+    max_policy_lag=2,
+    validate_minutes=0.3,
+    validation_episodes=8,
+    checkpoint_minutes=0.05,
+)
+
+
+def tiny_flags(config: TrainConfig = TINY, **changes) -> list[str]:
+    """`rllock train` flags that give `config` (top-level fields replaced by `changes`), leaving out
+    --logdir and --minutes, which each test sets."""
+    from rllock.flags import leaves
+
+    config = dataclasses.replace(config, **changes)
+    flags = []
+    for path, _, _ in leaves(TrainConfig):
+        if path[-1] in ("logdir", "minutes"):
+            continue
+        value = config
+        for name in path:
+            value = getattr(value, name)
+        flag = "--" + path[-1].replace("_", "-")
+        if value is None:
+            continue
+        if isinstance(value, bool):
+            flags.append(flag if value else "--no-" + flag[2:])
+        else:
+            flags += [flag, ",".join(map(str, value)) if isinstance(value, tuple) else str(value)]
+    return flags
+
+
+def run_cli(*args: str, timeout: float = 300):
+    """Run the installed `rllock` command in a subprocess: (exit code, stdout, stderr)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "rllock.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
+    return proc.returncode, proc.stdout, proc.stderr

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from helpers import run_cli
 
 
 def _files(tmp_path):

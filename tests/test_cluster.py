@@ -15,43 +15,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import pytest
 import yaml
+from helpers import tiny_flags
 
 from cluster.train_job import job_args
 
+TINY = tiny_flags()
+
 ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "--shape",
-    "box:4x4x2",
-    "--pieces",
-    "3",
-    "--canvas",
-    "4",
-    "--features",
-    "4,8",
-    "--simulations",
-    "8",
-    "--raw-samples",
-    "256",
-    "--candidates",
-    "8",
-    "--max-considered",
-    "4",
-    "--episodes-per-batch",
-    "4",
-    "--min-buffer",
-    "8",
-    "--batch-size",
-    "16",
-    "--validation-episodes",
-    "8",
-    "--validate-minutes",
-    "0.3",
-    "--checkpoint-minutes",
-    "0.2",
-    "--actors",
-    "1",
-]
 
 
 def _free_port() -> int:
@@ -71,6 +43,7 @@ def test_cluster_config_mounts_the_repository_and_installs_the_lock_file():
     assert any("requirements.lock" in c for c in config["setup_commands"])
 
 
+@pytest.mark.slow
 def test_training_on_a_ray_head_started_on_loopback(tmp_path):
     port = _free_port()
     # Ray's socket paths must stay under 108 bytes: pytest's tmp_path is too deep for them.
@@ -107,7 +80,9 @@ def test_training_on_a_ray_head_started_on_loopback(tmp_path):
                 str(ROOT / "cluster" / "train_job.py"),
                 *TINY,
                 "--minutes",
-                "0.5",
+                "4",
+                "--max-learner-steps",
+                "20",
                 "--logdir",
                 str(logdir),
                 "--address",

@@ -12,7 +12,7 @@ import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
-from conftest import run_cli
+from helpers import run_cli
 
 from rllock.assembly import write_assembly
 from rllock.errors import RLLockError

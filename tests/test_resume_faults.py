@@ -10,44 +10,14 @@ import time
 from pathlib import Path
 
 import psutil
+import pytest
+from helpers import tiny_flags
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-TINY = [
-    "--shape",
-    "box:4x4x2",
-    "--pieces",
-    "3",
-    "--canvas",
-    "4",
-    "--features",
-    "4,8",
-    "--simulations",
-    "8",
-    "--raw-samples",
-    "256",
-    "--candidates",
-    "8",
-    "--max-considered",
-    "4",
-    "--episodes-per-batch",
-    "4",
-    "--min-buffer",
-    "8",
-    "--batch-size",
-    "16",
-    "--publish-every",
-    "5",
-    "--validation-episodes",
-    "8",
-    "--checkpoint-minutes",
-    "0.05",
-    "--validate-minutes",
-    "0.3",
-    "--actors",
-    "1",
-    "--learning-rate",
-    "1e-3",
-]
+from rllock.config import MCTSConfig
+
+pytestmark = pytest.mark.slow
+TINY = tiny_flags()
 
 
 def _train(*args: str) -> subprocess.Popen:
@@ -104,7 +74,9 @@ def test_sigkill_then_resume_continues_and_falls_back_past_a_corrupted_checkpoin
 def test_a_killed_actor_is_restarted_and_training_reaches_its_end(tmp_path):
     logdir = tmp_path / "run"
     started = time.time()
-    proc = _train(*TINY, "--minutes", "1.5", "--logdir", str(logdir))
+    # 2.5 minutes: the restarted actor must compile and return a batch before the budget ends (batches
+    # still in flight at the end are dropped, so a restart noticed only then would go unreported).
+    proc = _train(*TINY, "--minutes", "2.5", "--logdir", str(logdir))
 
     def actor_processes():
         found = []
@@ -147,9 +119,10 @@ def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun(tmp_path
     """Slow validations (many episodes, many simulations) must be skipped, not run past the budget."""
     logdir = tmp_path / "run"
     started = time.monotonic()
-    slow = [a for a in TINY]
-    slow[slow.index("--validation-episodes") + 1] = "512"
-    slow[slow.index("--simulations") + 1] = "32"
+    slow = tiny_flags(
+        validation_episodes=512,
+        mcts=MCTSConfig(simulations=32, max_considered=4, raw_samples=256, candidates=8),
+    )
     proc = _train(*slow, "--minutes", "1", "--logdir", str(logdir))
     out, _ = proc.communicate(timeout=300)
     elapsed = time.monotonic() - started

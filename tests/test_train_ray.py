@@ -2,30 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
 import pytest
 import ray
-from conftest import run_cli
+from helpers import TINY, run_cli
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from orchestration.train import train
-from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
 from rllock.errors import RLLockError
 
-TINY = dict(
-    shape="box:4x4x2",
-    pieces=3,
-    net=NetConfig(features=(4, 8)),
-    mcts=MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8),
-    selfplay=SelfPlayConfig(actors=1, episodes_per_batch=4),
-    publish_every=5,
-    max_policy_lag=2,
-    validate_minutes=0.2,
-    validation_episodes=8,
-    checkpoint_minutes=0.1,
-)
+pytestmark = pytest.mark.slow
 STEPS = 60
 
 
@@ -35,15 +24,7 @@ def run(tmp_path_factory):
     ray.init(num_cpus=2, include_dashboard=False)
     try:
         # The run ends on its learner-step limit; the minutes are only a safety net.
-        result = train(
-            TrainConfig(
-                minutes=5,
-                max_learner_steps=STEPS,
-                logdir=str(logdir),
-                learner=LearnerConfig(learning_rate=1e-3, batch_size=16),
-                **TINY,
-            )
-        )
+        result = train(dataclasses.replace(TINY, minutes=5, max_learner_steps=STEPS, logdir=str(logdir)))
     finally:
         ray.shutdown()
     return logdir, result
@@ -76,7 +57,7 @@ def test_training_writes_checkpoints_and_event_files(run):
     for tag in ("charts/episodes_per_sec", "validation/success_rate"):
         steps = [e.step for e in events.Scalars(tag)]
         assert steps == sorted(steps) and steps[-1] == result["steps"]
-    assert max(e.value for e in events.Scalars("charts/policy_lag")) <= TINY["max_policy_lag"]
+    assert max(e.value for e in events.Scalars("charts/policy_lag")) <= TINY.max_policy_lag
     for kind in ("driver", "buffer", "actor"):
         assert events.Scalars(f"memory/{kind}_peak_mb")[-1].value > 50  # real processes, real megabytes
     assert (logdir / "best_assembly" / "assembly.json").exists() and (logdir / "replay.npz").exists()
@@ -121,7 +102,7 @@ def test_generate_from_the_run_writes_verified_assemblies(run, tmp_path):
 def test_a_used_logdir_is_refused(run):
     logdir, _ = run
     with pytest.raises(RLLockError, match="already holds"):
-        train(TrainConfig(minutes=0.1, logdir=str(logdir), **TINY))
+        train(dataclasses.replace(TINY, minutes=0.1, logdir=str(logdir)))
 
 
 def test_generate_on_ray_actors_writes_verified_distinct_assemblies(run, tmp_path):
