@@ -129,7 +129,8 @@ class _Run:
         self.searchers = searchers(config.net, config.mcts, task.piece_size, config.validation_episodes, 1)
         self.interrupted = False
         self.lag = 0
-        self.batch_seconds: float | None = None  # the last self-play batch's time, to estimate a validation
+        # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
+        self.batch_seconds: float | None = None
         self.validation_seconds: float | None = None
         self.buffer_successes = 0
         self.memory = {"driver": 0.0, "buffer": 0.0, "actor": 0.0}  # peak resident MiB per process kind
@@ -237,7 +238,7 @@ class _Run:
         c = self.counters
         c.add(stats)
         self.lag = c.version - stats.version
-        self.batch_seconds = stats.seconds
+        self.batch_seconds = min(stats.seconds, self.batch_seconds or stats.seconds)
         self.memory["actor"] = max(self.memory["actor"], stats.peak_rss_mb)
         buffer_stats = ray.get(self.buffer.stats.remote())
         c.transitions = int(buffer_stats["added"])
@@ -330,7 +331,7 @@ class _Run:
                 "%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",
                 "final " if final else "",
                 "?" if estimate is None else f"{estimate:.0f}",
-                self.schedule.deadline - now,
+                max(0.0, self.schedule.deadline - now),
             )
             return
         self._validate()

@@ -216,12 +216,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         return 130
     val = result["validation"]
     last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
+    best = result["best_success_rate"]
     sys.stdout.write(
         f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
         f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
         f"{result['seconds']:.0f} s; last validation {last}, best "
-        f"{max(0.0, 100 * result['best_success_rate']):.1f}%\n"
-        f"checkpoints: {result['logdir']}/best (best) and {result['logdir']}/checkpoints (latest)\n"
+        f"{'none yet' if best < 0 else f'{100 * best:.1f}%'}\n"
+        f"checkpoints: {result['logdir']}/best (best validated) and {result['logdir']}/checkpoints (latest)\n"
         f"watch it: tensorboard --logdir {result['logdir']}\n"
     )
     return 0
