@@ -343,48 +343,24 @@ def sample_and_check(
 
     Returns (accepted int32[k, n], k). Chunks that fail to grow to n voxels count as rejected.
     """
-    np.random.seed(seed)
-    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
     accepted = np.empty((num_samples, n), np.int32)
-    if seeds.shape[0] == 0:
-        return accepted[:0], 0
-    n_vox = labels.shape[0]
-    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape
+    k, _ = _sample_into(
+        nbr,
+        ray,
+        line,
+        n_lines,
+        coords,
+        index,
+        labels,
+        piece,
+        n,
+        num_samples,
+        num_samples,
+        False,
+        removal_path,
+        seed,
+        accepted,
     )
-    front_mark = np.zeros(n_vox, np.int64)
-    front = np.empty(n_vox, np.int32)
-    chunk = np.empty(n, np.int32)
-    k = 0
-    for s in range(num_samples):
-        stamp = s + 1
-        if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, stamp):
-            continue
-        verdict = _check(
-            chunk,
-            n,
-            piece,
-            nbr,
-            line,
-            coords,
-            index,
-            part_of,
-            ray_r,
-            base,
-            removal_path,
-            False,
-            in_chunk,
-            mark,
-            queue,
-            line_count,
-            counts,
-            visited,
-            off_queue,
-            stamp,
-        )
-        if verdict == ALL_CHECKS:
-            accepted[k, :] = chunk
-            k += 1
     return accepted[:k], k
 
 
@@ -490,6 +466,45 @@ def node_candidates(
     """A node's candidate actions into `out` [>= max_candidates, n]: the first `max_candidates` distinct
     accepted chunks (sorted voxel numbers) among at most `num_samples` raw samples, in sampling order.
     Returns (candidates found, raw samples drawn)."""
+    return _sample_into(
+        nbr,
+        ray,
+        line,
+        n_lines,
+        coords,
+        index,
+        labels,
+        piece,
+        n,
+        num_samples,
+        max_candidates,
+        True,
+        removal_path,
+        seed,
+        out,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _sample_into(
+    nbr,
+    ray,
+    line,
+    n_lines,
+    coords,
+    index,
+    labels,
+    piece,
+    n,
+    num_samples,
+    keep,
+    distinct,
+    removal_path,
+    seed,
+    out,
+):
+    """Draw raw chunks for piece `piece` (at most `num_samples`) and write the accepted ones into `out`
+    until `keep` are kept; with `distinct`, as sorted voxel numbers without repeats. Returns (kept, drawn)."""
     np.random.seed(seed)
     part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
     if seeds.shape[0] == 0:
@@ -503,7 +518,7 @@ def node_candidates(
     chunk = np.empty(n, np.int32)
     k = 0
     s = 0
-    while s < num_samples and k < max_candidates:
+    while s < num_samples and k < keep:
         s += 1
         if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
             continue
@@ -531,10 +546,12 @@ def node_candidates(
         )
         if verdict != ALL_CHECKS:
             continue
-        _insertion_sort(chunk, n)
-        if not _seen(out, k, chunk, n):
-            out[k, :] = chunk
-            k += 1
+        if distinct:
+            _insertion_sort(chunk, n)
+            if _seen(out, k, chunk, n):
+                continue
+        out[k, :] = chunk
+        k += 1
     return k, s
 
 
