@@ -90,9 +90,11 @@ class Schedule:
         self.next_report = now + REPORT_EVERY_S
         return True
 
-    def fits(self, now: float, seconds: float | None) -> bool:
-        """Whether work expected to take `seconds` (None: unknown) ends before the deadline."""
-        return seconds is not None and now + seconds <= self.deadline
+    def fits(self, now: float, seconds: float | None, *, final: bool = False) -> bool:
+        """Whether work expected to take `seconds` (None: unknown) ends before the deadline; the final
+        validation may also use half of the reserve kept for the last checkpoint and shutdown."""
+        slack = RESERVE_S / 2 if final else 0.0
+        return seconds is not None and now + seconds <= self.deadline + slack
 
 
 COMPILE_S = 20.0

@@ -326,7 +326,7 @@ class _Run:
 
     def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
         estimate = self._validation_estimate()
-        if not self.schedule.fits(now, estimate):
+        if not self.schedule.fits(now, estimate, final=final):
             log.info(
                 "%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",
                 "final " if final else "",

@@ -40,6 +40,7 @@ def test_schedule_keeps_the_budget_and_checkpoints_right_after_the_first_step():
     assert not s.checkpoint_due(220.0, step=50) and s.checkpoint_due(221.0, step=50)
     assert not s.validation_due(159.0) and s.validation_due(160.0)
     assert s.fits(200.0, 50.0) and not s.fits(200.0, 70.0) and not s.fits(0.0, None)
+    assert s.fits(200.0, 70.0, final=True) and not s.fits(200.0, 71.0, final=True)
     assert s.report_due(130.0) and not s.report_due(131.0)
     assert not s.over(259.9) and s.over(260.0)
 
