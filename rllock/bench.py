@@ -14,7 +14,7 @@ from rllock.solver import SearchConfig, reach_depth, search
 log = logging.getLogger(__name__)
 
 # The paper's inference times (minutes, RTX 5090 workstation; None = nothing valid within 60 minutes),
-# DESIGN.md section 2: (cube size, K) -> (RL-Lock infer, DESIA).
+# Table 1 of the RL-Lock paper (AAAI 2027 preprint): (cube size, K) -> (RL-Lock infer, DESIA).
 PAPER_MINUTES: dict[tuple[int, int], tuple[float, float | None]] = {
     (4, 7): (0.05, 0.01),
     (4, 8): (0.47, 0.50),

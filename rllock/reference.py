@@ -1,6 +1,6 @@
 """The three checkers and the chunk sampler, written plainly over sets of voxel coordinates.
 
-This is the definition (DESIGN.md section 1) in code, kept short so that it can be read and trusted; the
+This is the definition (docs/checkers.md) in code, kept short so that it can be read and trusted; the
 verifier uses it, and the compiled fast path in `rllock.fast` is tested against it.
 """
 
