@@ -148,6 +148,5 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        if self.buffer is not None:
-            ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
+        ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
         return stats

@@ -6,7 +6,6 @@ parameters travel as host arrays, so a checkpoint trained on any device runs the
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from pathlib import Path
 
@@ -70,7 +69,3 @@ def generate_on_ray(
     finally:
         if started:
             ray.shutdown()
-
-
-def default_actors() -> int:
-    return os.cpu_count() or 1

@@ -122,25 +122,15 @@ def candidates(task: Task, state: State, *, seed: int, num_samples: int, max_can
     """A node's candidate actions: the first `max_candidates` distinct accepted chunks among at most
     `num_samples` raw samples (see `fast`), each as sorted voxel numbers: int32[M, n]. An empty result
     means a dead end."""
-    topo = task.topology
-    out = np.zeros((max_candidates, task.piece_size), np.int32)
-    found, _ = fast.node_candidates(
-        topo.nbr,
-        topo.ray,
-        topo.line,
-        topo.n_lines,
-        topo.coords,
-        topo.index,
-        state.labels,
-        state.placed + 1,
-        task.piece_size,
-        num_samples,
-        max_candidates,
-        task.removal == "path",
-        seed,
-        out,
+    found, _ = candidates_many(
+        task,
+        [state],
+        np.array([seed]),
+        num_samples=num_samples,
+        max_candidates=max_candidates,
+        parallel=False,
     )
-    return out[:found]
+    return found[0]
 
 
 def candidates_many(
