@@ -100,14 +100,8 @@ def final_labels(task: Task, state: State) -> np.ndarray:
 
 def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) -> np.ndarray:
     """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n]."""
-    topo = task.topology
     accepted, _ = fast.sample_and_check(
-        topo.nbr,
-        topo.ray,
-        topo.line,
-        topo.n_lines,
-        topo.coords,
-        topo.index,
+        task.topology.arrays,
         state.labels,
         state.placed + 1,
         task.piece_size,
@@ -144,13 +138,11 @@ def candidates_many(
 ) -> tuple[list[np.ndarray], int]:
     """`candidates` for several states in one compiled call (with `parallel`, one numba thread per
     state; without, all on the calling thread); also the raw samples drawn in all."""
-    topo = task.topology
-    topo_arrays = (topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index)
     labels = np.stack([s.labels for s in states])
     pieces = np.array([s.placed + 1 for s in states], np.int64)
     expand = fast.candidates_many if parallel else fast.candidates_serial
     out, found, drawn = expand(
-        topo_arrays,
+        task.topology.arrays,
         labels,
         pieces,
         np.asarray(seeds, np.int64),

@@ -15,7 +15,8 @@ Per chunk, the checks then cost O(n) (plus a BFS that stops once the cut is know
     (every R_i voxel reaches the chunk's boundary inside R_(i-1), so it reaches that component);
   - interlocking: the contact counts of A_i are those of A_(i-1) with the chunk's contacts moved
     from R to the new piece; then an SCC test per axis.
-Checks run cheapest first and stop at the first failure.
+Checks run in the order that rejects most per unit of work (straight removability, interlocking,
+connectivity) and stop at the first failure.
 
 A search node's candidates (`node_candidates`, and `candidates_many` for a whole batch of nodes, one
 thread per node with `prange`) are the first M_c distinct accepted chunks in sampling order, drawn from
@@ -76,12 +77,40 @@ def _prepare(nbr, ray, labels, piece):
             u = nbr[v, 2 * a]
             if u >= 0 and part_of[u] != p:
                 base[a, p, part_of[u]] += 1
-    return part_of, seeds[:n_seeds], ray_r, base
+    base_ok = _base_interlocking(base, n_parts, piece - 1) if piece > 1 else np.zeros((3, 2), np.bool_)
+    return part_of, seeds[:n_seeds], ray_r, base, base_ok
+
+
+@njit(cache=True, nogil=True)
+def _rng(seed):
+    """A xorshift64* generator's state (uint64[1]), from any int seed through splitmix64. It is 7x
+    cheaper per draw than numba's np.random, and each caller holds its own, so streams do not depend
+    on threads."""
+    z = np.uint64(seed) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z ^= z >> np.uint64(31)
+    state = np.empty(1, np.uint64)
+    state[0] = z if z != np.uint64(0) else np.uint64(1)
+    return state
+
+
+@njit(cache=True, nogil=True)
+def _below(state, bound):
+    """A draw from 0..bound-1 (bound < 2**31): the high 32 bits scaled by multiply-shift (Lemire),
+    whose bias, at most bound / 2**32, is far below anything a sample of chunks can show."""
+    x = state[0]
+    x ^= x >> np.uint64(12)
+    x ^= x << np.uint64(25)
+    x ^= x >> np.uint64(27)
+    state[0] = x
+    r = (x * np.uint64(0x2545F4914F6CDD1D)) >> np.uint64(32)
+    return np.int64((r * np.uint64(bound)) >> np.uint64(32))
 
 
 @njit(cache=True)
-def _sample_chunk(seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, front_mark, stamp):
-    s = seeds[np.random.randint(seeds.shape[0])]
+def _sample_chunk(rng, seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, front_mark, stamp):
+    s = seeds[_below(rng, seeds.shape[0])]
     chunk[0] = s
     in_chunk[s] = stamp
     nf = 0
@@ -90,7 +119,7 @@ def _sample_chunk(seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, front_
         if j > 0:
             if nf == 0:
                 return False
-            pick = np.random.randint(nf)
+            pick = _below(rng, nf)
             v = front[pick]
             nf -= 1
             front[pick] = front[nf]
@@ -128,48 +157,91 @@ def _straight_free(chunk, n, line, ray_r, line_count):
 
 
 @njit(cache=True)
-def _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, queue, stamp):
-    """R_i connected, given R_(i-1) connected: BFS in R_i until every R_i voxel touching the chunk
-    is reached. `mark` holds 2*stamp for boundary voxels and 2*stamp+1 once visited."""
-    boundary = 0
+def _find(parent, g):
+    while parent[g] != g:
+        parent[g] = parent[parent[g]]
+        g = parent[g]
+    return g
+
+
+@njit(cache=True)
+def _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, owner, nxt, groups, stamp):
+    """R_i connected, given R_(i-1) connected: whether the R_i voxels touching the chunk are in one
+    component of R_i. One breadth-first search grows from each of them, in turns, and searches that
+    meet are merged (union-find), so the test ends when all have met, or when the searches of one
+    merged group run out of voxels: that group then fills a component that misses another boundary
+    voxel. Either way it ends early: a failure costs about the size of the smallest component cut
+    off, a success the distance between neighbouring boundary voxels, not a walk over all of R_i.
+    `mark[v] == stamp` once v is reached, `owner[v]` is the search that reached it and `nxt` links
+    each search's queue; groups rows: union-find parent, queue head, queue tail, live searches."""
+    parent, head, tail, alive = groups[0], groups[1], groups[2], groups[3]
+    nb = 0
     for j in range(n):
         v = chunk[j]
         for k in range(6):
             u = nbr[v, k]
-            if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp and mark[u] != 2 * stamp:
-                mark[u] = 2 * stamp
-                queue[boundary] = u
-                boundary += 1
-    if boundary == 0:
+            if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp and mark[u] != stamp:
+                mark[u] = stamp
+                owner[u] = nb
+                nxt[u] = -1
+                parent[nb] = nb
+                head[nb] = u
+                tail[nb] = u
+                alive[nb] = 1
+                nb += 1
+    if nb == 0:
         return False
-    found = 1
-    head, tail = 0, 1
-    # The BFS reuses `queue` from slot 1 on: boundary voxels are remembered by `mark`, not the list.
-    mark[queue[0]] = 2 * stamp + 1
-    while head < tail and found < boundary:
-        v = queue[head]
-        head += 1
-        for k in range(6):
-            u = nbr[v, k]
-            if u < 0 or part_of[u] != r_node or in_chunk[u] == stamp:
+    roots = nb
+    while roots > 1:
+        for g in range(nb):
+            v = head[g]
+            if v < 0:
                 continue
-            if mark[u] == 2 * stamp + 1:
-                continue
-            if mark[u] == 2 * stamp:
-                found += 1
-            mark[u] = 2 * stamp + 1
-            queue[tail] = u
-            tail += 1
-    return found == boundary
+            head[g] = nxt[v]
+            for k in range(6):
+                u = nbr[v, k]
+                if u < 0 or part_of[u] != r_node or in_chunk[u] == stamp:
+                    continue
+                if mark[u] != stamp:
+                    mark[u] = stamp
+                    owner[u] = g
+                    nxt[u] = -1
+                    if head[g] < 0:
+                        head[g] = u
+                    else:
+                        nxt[tail[g]] = u
+                    tail[g] = u
+                    continue
+                a = _find(parent, g)
+                b = _find(parent, owner[u])
+                if a != b:
+                    parent[b] = a
+                    alive[a] += alive[b]
+                    roots -= 1
+                    if roots == 1:
+                        return True
+            if head[g] < 0:
+                a = _find(parent, g)
+                alive[a] -= 1
+                if alive[a] == 0:
+                    return False
+    return True
 
 
 @njit(cache=True)
-def _strongly_connected(counts, a, n_parts, skip):
-    """Whether the axis-a contact graph restricted to nodes != skip is strongly connected."""
-    start = 1 if skip == 0 else 0
+def _strongly_connected(counts, a, n_parts, skip, absent, seen, stack):
+    """Whether the axis-a contact graph on the nodes other than `skip` and `absent` (-1: none) is
+    strongly connected."""
+    start = 0
+    while start == skip or start == absent:
+        start += 1
+    size = n_parts - (skip >= 0) - (absent >= 0)
     for direction in range(2):
-        seen = np.zeros(n_parts, np.bool_)
-        stack = np.empty(n_parts, np.int32)
+        seen[:n_parts] = False
+        if skip >= 0:
+            seen[skip] = True
+        if absent >= 0:
+            seen[absent] = True
         seen[start] = True
         stack[0] = start
         top = 1
@@ -178,7 +250,7 @@ def _strongly_connected(counts, a, n_parts, skip):
             top -= 1
             p = stack[top]
             for q in range(n_parts):
-                if q == skip or seen[q]:
+                if seen[q]:
                     continue
                 c = counts[a, p, q] if direction == 0 else counts[a, q, p]
                 if c > 0:
@@ -186,16 +258,46 @@ def _strongly_connected(counts, a, n_parts, skip):
                     stack[top] = q
                     top += 1
                     reached += 1
-        if reached != n_parts - (1 if skip >= 0 else 0):
+        if reached != size:
             return False
     return True
 
 
 @njit(cache=True)
-def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, counts, stamp):
-    n_parts = r_node + 1
+def _base_interlocking(base, n_parts, new):
+    """Per axis, whether A_(i-1)'s graph (without the still empty node `new`) is strongly connected
+    [a, 0], and whether it is without the key [a, 1]."""
+    seen = np.zeros(n_parts, np.bool_)
+    stack = np.empty(n_parts, np.int32)
+    out = np.zeros((3, 2), np.bool_)
+    for a in range(3):
+        out[a, 0] = _strongly_connected(base, a, n_parts, -1, new, seen, stack)
+        out[a, 1] = _strongly_connected(base, a, n_parts, 0, new, seen, stack)
+    return out
+
+
+@njit(cache=True)
+def _held_every_way(chunk, n, nbr, in_chunk, stamp):
+    """Whether the chunk touches another voxel of the shape in each of the 6 directions. A new piece
+    that does not can slide one step that way, so A_i is not interlocking: a cheap first rejection."""
+    need = 63
+    for j in range(n):
+        v = chunk[j]
+        for k in range(6):
+            u = nbr[v, k]
+            if u >= 0 and in_chunk[u] != stamp:
+                need &= ~(1 << k)
+        if need == 0:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, counts, stamp, sign):
+    """Moves the chunk's face contacts from R to the new piece in `counts` (sign 1), or back (-1).
+    Returns whether a contact between R and another node dropped to zero (an edge was lost)."""
     new = r_node - 1
-    counts[:, :, :] = base
+    lost = False
     for j in range(n):
         v = chunk[j]
         for a in range(3):
@@ -203,18 +305,54 @@ def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, counts, stamp)
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    counts[a, r_node, q] -= 1
-                counts[a, new, q] += 1
+                    counts[a, r_node, q] -= sign
+                    lost |= counts[a, r_node, q] == 0
+                counts[a, new, q] += sign
             u = nbr[v, 2 * a + 1]  # u -> v along +a
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    counts[a, q, r_node] -= 1
-                counts[a, q, new] += 1
+                    counts[a, q, r_node] -= sign
+                    lost |= counts[a, q, r_node] == 0
+                counts[a, q, new] += sign
+    return lost
+
+
+@njit(cache=True)
+def _axis_interlocking(counts, a, n_parts, new, lost, base_ok, seen, stack):
+    """The interlocking test on axis a of A_i, whose new piece has contacts both ways along a. When
+    no contact of R was lost, the old nodes' graph is A_(i-1)'s, so where that was strongly connected
+    (without the key), the new node's contacts (with nodes other than the key) decide."""
+    if not lost:
+        if base_ok[a, 0]:
+            return True
+        if base_ok[a, 1]:
+            has_in = has_out = False
+            for q in range(1, n_parts):
+                has_in |= counts[a, q, new] > 0
+                has_out |= counts[a, new, q] > 0
+            if has_in and has_out:
+                return True
+    return _strongly_connected(counts, a, n_parts, -1, -1, seen, stack) or _strongly_connected(
+        counts, a, n_parts, 0, -1, seen, stack
+    )
+
+
+@njit(cache=True)
+def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, base_ok, seen, stack, stamp):
+    """The interlocking test on A_i, whose contact counts are A_(i-1)'s (`base`) with the chunk's
+    contacts moved; `base` is changed for the test and restored, which is cheaper than a copy."""
+    if not _held_every_way(chunk, n, nbr, in_chunk, stamp):
+        return False
+    n_parts = r_node + 1
+    lost = _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, base, stamp, 1)
+    ok = True
     for a in range(3):
-        if not (_strongly_connected(counts, a, n_parts, -1) or _strongly_connected(counts, a, n_parts, 0)):
-            return False
-    return True
+        if not _axis_interlocking(base, a, n_parts, r_node - 1, lost, base_ok, seen, stack):
+            ok = False
+            break
+    _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, base, stamp, -1)
+    return ok
 
 
 @njit(cache=True)
@@ -276,42 +414,27 @@ def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queu
 
 
 @njit(cache=True)
-def _check(
-    chunk,
-    n,
-    piece,
-    nbr,
-    line,
-    coords,
-    index,
-    part_of,
-    ray_r,
-    base,
-    removal_path,
-    full,
-    in_chunk,
-    mark,
-    queue,
-    line_count,
-    counts,
-    visited,
-    off_queue,
-    stamp,
-):
+def _check(chunk, n, piece, topo, node, removal_path, full, scratch, stamp):
     """Bitmask of passed checks (CONNECTED | REMOVABLE | INTERLOCKING). With `full` false it stops at
-    the first failure and returns 0 for any rejected chunk."""
+    the first failure and returns 0 for any rejected chunk. The chunk's voxels hold `stamp` in
+    scratch's `in_chunk`."""
+    nbr, _, line, _, coords, index = topo
+    part_of, _, ray_r, base, base_ok = node
+    in_chunk, mark, owner, nxt, groups, line_count, seen, stack, visited, off_queue = scratch
     r_node = piece
     result = 0
     removable = _straight_free(chunk, n, line, ray_r, line_count) != 0
     if not removable and not removal_path and not full:
         return 0
-    connected = _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, queue, stamp)
-    if connected:
-        result |= CONNECTED
+    # Interlocking before connectivity: its first test rejects most chunks for a few loads each.
+    if piece == 1 or _interlocking(
+        chunk, n, nbr, part_of, r_node, in_chunk, base, base_ok, seen, stack, stamp
+    ):
+        result |= INTERLOCKING
     elif not full:
         return 0
-    if piece == 1 or _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, counts, stamp):
-        result |= INTERLOCKING
+    if _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, owner, nxt, groups, stamp):
+        result |= CONNECTED
     elif not full:
         return 0
     if not removable and removal_path:
@@ -323,91 +446,58 @@ def _check(
 
 @njit(cache=True)
 def _scratch(n_vox, n_lines, n_parts, dims):
+    """Work arrays of `_check`: (in_chunk, mark, owner, nxt, groups, line_count, seen, stack, visited,
+    off_queue). Stamped arrays start at 0 and stamps at 1, so they never need clearing."""
     n_off = (2 * dims[0] + 1) * (2 * dims[1] + 1) * (2 * dims[2] + 1)
     return (
         np.zeros(n_vox, np.int64),
         np.zeros(n_vox, np.int64),
         np.empty(n_vox, np.int32),
+        np.empty(n_vox, np.int32),
+        np.empty((4, n_vox), np.int32),
         np.zeros(n_lines, np.int32),
-        np.zeros((3, n_parts, n_parts), np.int32),
+        np.zeros(n_parts, np.bool_),
+        np.empty(n_parts, np.int32),
         np.zeros(n_off, np.int64),
         np.empty(n_off, np.int64),
     )
 
 
 @njit(cache=True)
-def sample_and_check(
-    nbr, ray, line, n_lines, coords, index, labels, piece, n, num_samples, removal_path, seed
-):
+def sample_and_check(topo, labels, piece, n, num_samples, removal_path, seed):
     """Sample `num_samples` raw chunks for piece `piece` and keep those the checkers accept.
+    topo = (nbr, ray, line, n_lines, coords, index), as `Topology.arrays`.
 
     Returns (accepted int32[k, n], k). Chunks that fail to grow to n voxels count as rejected.
     """
     accepted = np.empty((num_samples, n), np.int32)
-    k, _ = _sample_into(
-        nbr,
-        ray,
-        line,
-        n_lines,
-        coords,
-        index,
-        labels,
-        piece,
-        n,
-        num_samples,
-        num_samples,
-        False,
-        removal_path,
-        seed,
-        accepted,
-    )
+    k, _ = _sample_into(topo, labels, piece, n, num_samples, num_samples, False, removal_path, seed, accepted)
     return accepted[:k], k
 
 
 @njit(cache=True)
-def check_chunks(nbr, ray, line, n_lines, coords, index, labels, piece, chunks, removal_path):
+def check_chunks(topo, labels, piece, chunks, removal_path):
     """Every check on every given chunk (no early exit): int32 bitmask per chunk. For testing."""
-    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
-    n_vox = labels.shape[0]
-    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape
-    )
+    nbr, ray, _, n_lines, _, index = topo
+    node = _prepare(nbr, ray, labels, piece)
+    scratch = _scratch(labels.shape[0], n_lines, piece + 1, index.shape)
+    in_chunk = scratch[0]
     out = np.zeros(chunks.shape[0], np.int32)
     n = chunks.shape[1]
     for s in range(chunks.shape[0]):
         stamp = s + 1
         for j in range(n):
             in_chunk[chunks[s, j]] = stamp
-        out[s] = _check(
-            chunks[s],
-            n,
-            piece,
-            nbr,
-            line,
-            coords,
-            index,
-            part_of,
-            ray_r,
-            base,
-            removal_path,
-            True,
-            in_chunk,
-            mark,
-            queue,
-            line_count,
-            counts,
-            visited,
-            off_queue,
-            stamp,
-        )
+        out[s] = _check(chunks[s], n, piece, topo, node, removal_path, True, scratch, stamp)
     return out
 
 
 @njit(cache=True)
-def sample_raw(nbr, ray, labels, piece, n, num_samples, seed):
+def sample_raw(topo, labels, piece, n, num_samples, seed):
     """Unchecked raw chunks (those that grew to n voxels): int32[k, n]. For testing the sampler."""
-    np.random.seed(seed)
-    part_of, seeds, _, _ = _prepare(nbr, ray, labels, piece)
+    rng = _rng(seed)
+    nbr, ray = topo[0], topo[1]
+    part_of, seeds = _prepare(nbr, ray, labels, piece)[:2]
     n_vox = labels.shape[0]
     out = np.empty((num_samples, n), np.int32)
     if seeds.shape[0] == 0:
@@ -417,7 +507,7 @@ def sample_raw(nbr, ray, labels, piece, n, num_samples, seed):
     front = np.empty(n_vox, np.int32)
     k = 0
     for s in range(num_samples):
-        if _sample_chunk(seeds, nbr, part_of, piece, n, out[k], in_chunk, front, front_mark, s + 1):
+        if _sample_chunk(rng, seeds, nbr, part_of, piece, n, out[k], in_chunk, front, front_mark, s + 1):
             k += 1
     return out[:k]
 
@@ -447,72 +537,26 @@ def _seen(out, k, chunk, n):
 
 
 @njit(cache=True, nogil=True)
-def node_candidates(
-    nbr,
-    ray,
-    line,
-    n_lines,
-    coords,
-    index,
-    labels,
-    piece,
-    n,
-    num_samples,
-    max_candidates,
-    removal_path,
-    seed,
-    out,
-):
+def node_candidates(topo, labels, piece, n, num_samples, max_candidates, removal_path, seed, out):
     """A node's candidate actions into `out` [>= max_candidates, n]: the first `max_candidates` distinct
     accepted chunks (sorted voxel numbers) among at most `num_samples` raw samples, in sampling order.
     Returns (candidates found, raw samples drawn)."""
-    return _sample_into(
-        nbr,
-        ray,
-        line,
-        n_lines,
-        coords,
-        index,
-        labels,
-        piece,
-        n,
-        num_samples,
-        max_candidates,
-        True,
-        removal_path,
-        seed,
-        out,
-    )
+    return _sample_into(topo, labels, piece, n, num_samples, max_candidates, True, removal_path, seed, out)
 
 
 @njit(cache=True, nogil=True)
-def _sample_into(
-    nbr,
-    ray,
-    line,
-    n_lines,
-    coords,
-    index,
-    labels,
-    piece,
-    n,
-    num_samples,
-    keep,
-    distinct,
-    removal_path,
-    seed,
-    out,
-):
+def _sample_into(topo, labels, piece, n, num_samples, keep, distinct, removal_path, seed, out):
     """Draw raw chunks for piece `piece` (at most `num_samples`) and write the accepted ones into `out`
     until `keep` are kept; with `distinct`, as sorted voxel numbers without repeats. Returns (kept, drawn)."""
-    np.random.seed(seed)
-    part_of, seeds, ray_r, base = _prepare(nbr, ray, labels, piece)
+    rng = _rng(seed)
+    nbr, ray, _, n_lines, _, index = topo
+    node = _prepare(nbr, ray, labels, piece)
+    part_of, seeds = node[0], node[1]
     if seeds.shape[0] == 0:
         return 0, 0
     n_vox = labels.shape[0]
-    in_chunk, mark, queue, line_count, counts, visited, off_queue = _scratch(
-        n_vox, n_lines, piece + 1, index.shape
-    )
+    scratch = _scratch(n_vox, n_lines, piece + 1, index.shape)
+    in_chunk = scratch[0]
     front_mark = np.zeros(n_vox, np.int64)
     front = np.empty(n_vox, np.int32)
     chunk = np.empty(n, np.int32)
@@ -520,31 +564,9 @@ def _sample_into(
     s = 0
     while s < num_samples and k < keep:
         s += 1
-        if not _sample_chunk(seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
+        if not _sample_chunk(rng, seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
             continue
-        verdict = _check(
-            chunk,
-            n,
-            piece,
-            nbr,
-            line,
-            coords,
-            index,
-            part_of,
-            ray_r,
-            base,
-            removal_path,
-            False,
-            in_chunk,
-            mark,
-            queue,
-            line_count,
-            counts,
-            visited,
-            off_queue,
-            s,
-        )
-        if verdict != ALL_CHECKS:
+        if _check(chunk, n, piece, topo, node, removal_path, False, scratch, s) != ALL_CHECKS:
             continue
         if distinct:
             _insertion_sort(chunk, n)
@@ -559,22 +581,8 @@ def _sample_into(
 def _candidates_row(
     topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path, out, found, drawn, b
 ):
-    nbr, ray, line, n_lines, coords, index = topo
     found[b], drawn[b] = node_candidates(
-        nbr,
-        ray,
-        line,
-        n_lines,
-        coords,
-        index,
-        labels[b],
-        pieces[b],
-        n,
-        num_samples,
-        max_candidates,
-        removal_path,
-        seeds[b],
-        out[b],
+        topo, labels[b], pieces[b], n, num_samples, max_candidates, removal_path, seeds[b], out[b]
     )
 
 
@@ -582,7 +590,7 @@ def _candidates_row(
 def candidates_many(topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path):
     """`node_candidates` for B nodes at once, one thread per node. topo = (nbr, ray, line, n_lines,
     coords, index); labels int16[B, N], pieces and seeds int64[B] -> (candidates int32[B, max_candidates,
-    n], counts int32[B], raw samples drawn int64[B]). Each node seeds its own thread's generator, so the
+    n], counts int32[B], raw samples drawn int64[B]). Each node seeds a generator of its own, so the
     result does not depend on the thread count."""
     out = np.zeros((labels.shape[0], max_candidates, n), np.int32)
     found = np.zeros(labels.shape[0], np.int32)

@@ -32,6 +32,11 @@ class Topology:
     def dims(self) -> tuple[int, int, int]:
         return tuple(int(d) for d in self.grid.shape)  # type: ignore[return-value]
 
+    @property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]:
+        """(nbr, ray, line, n_lines, coords, index): the tables `fast` takes, as one argument."""
+        return (self.nbr, self.ray, self.line, self.n_lines, self.coords, self.index)
+
     def to_grid(self, labels: np.ndarray) -> np.ndarray:
         """Per-voxel values scattered into an int grid `[x, y, z]` (0 where the shape is empty)."""
         out = np.zeros(self.grid.shape, dtype=np.int64)

@@ -39,12 +39,7 @@ def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
         if len(chunks) == 0:
             continue
         got = fast.check_chunks(
-            topo.nbr,
-            topo.ray,
-            topo.line,
-            topo.n_lines,
-            topo.coords,
-            topo.index,
+            topo.arrays,
             state.labels,
             state.placed + 1,
             chunks,
@@ -69,14 +64,9 @@ def test_early_exit_sampler_keeps_exactly_the_chunks_full_checks_accept(removal)
     kept_total = 0
     for state in random_valid_states(task, rng, 2):
         seed = int(rng.integers(1 << 30))
-        raw = fast.sample_raw(topo.nbr, topo.ray, state.labels, state.placed + 1, task.piece_size, 300, seed)
+        raw = fast.sample_raw(topo.arrays, state.labels, state.placed + 1, task.piece_size, 300, seed)
         bits = fast.check_chunks(
-            topo.nbr,
-            topo.ray,
-            topo.line,
-            topo.n_lines,
-            topo.coords,
-            topo.index,
+            topo.arrays,
             state.labels,
             state.placed + 1,
             raw,
@@ -119,7 +109,7 @@ def test_sampler_distribution_matches_the_reference_sampler():
         [task.topology.index[v] for v in ref.sample_chunk(labels, 2, 3, rng)] for _ in range(draws)
     )
     topo = task.topology
-    compiled = histogram(fast.sample_raw(topo.nbr, topo.ray, state.labels, 2, 3, draws, 12345))
+    compiled = histogram(fast.sample_raw(topo.arrays, state.labels, 2, 3, draws, 12345))
     assert set(compiled) == set(reference) and len(reference) > 10
     a = np.array([compiled[k] for k in reference], dtype=float)
     b = np.array([reference[k] for k in reference], dtype=float)

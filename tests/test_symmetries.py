@@ -60,13 +60,12 @@ def test_checkers_agree_on_symmetric_images(removal):
         chunks = raw_chunks(task, state, rng, 40)
         if len(chunks) == 0:
             continue
-        args = (topo.nbr, topo.ray, topo.line, topo.n_lines, topo.coords, topo.index)
-        want = fast.check_chunks(*args, state.labels, state.placed + 1, chunks, removal == "path")
+        want = fast.check_chunks(topo.arrays, state.labels, state.placed + 1, chunks, removal == "path")
         for p in perms[rng.choice(len(perms), 6, replace=False)]:
             labels = np.empty_like(state.labels)
             labels[p] = state.labels
             got = fast.check_chunks(
-                *args, labels, state.placed + 1, p[chunks].astype(np.int32), removal == "path"
+                topo.arrays, labels, state.placed + 1, p[chunks].astype(np.int32), removal == "path"
             )
             np.testing.assert_array_equal(got, want)
             compared += len(chunks)
