@@ -7,14 +7,19 @@ are the placed pieces (chunks are connected by construction).
 Work per search node is split in two. `_prepare` runs once per node and builds incremental state:
   - part_of[v]: blocking-graph node of each voxel (pieces 0..i-2, new piece i-1, R = i);
   - ray_r[v, k]: how many R_(i-1) voxels lie strictly beyond v along direction k;
-  - base[a, p, q]: face contacts p -> q along +axis a in A_(i-1).
-Per chunk, the checks then cost O(n) (plus a BFS that stops once the cut is known to be bridged):
+  - base[a, p, q]: face contacts p -> q along +axis a in A_(i-1), and base_ok: per axis, whether
+    A_(i-1)'s graph is strongly connected (without the key);
+  - r_nbr[v]: the R_(i-1) neighbours of each R_(i-1) voxel, which the sampler grows chunks over.
+Per chunk, the checks then cost O(n) (plus searches that stop early, below):
   - removable along k iff sum over chunk voxels of ray_r == pairs of chunk voxels sharing a k-line,
     because each such pair puts exactly one chunk voxel (a former R voxel) beyond the other;
   - connected: R_i is connected iff all R_i voxels touching the chunk are in one component of R_i
     (every R_i voxel reaches the chunk's boundary inside R_(i-1), so it reaches that component);
-  - interlocking: the contact counts of A_i are those of A_(i-1) with the chunk's contacts moved
-    from R to the new piece; then an SCC test per axis.
+    searches from each of them merge as they meet, so the test ends at the first cut-off component;
+  - interlocking: the new piece must touch the shape in all 6 directions; the contact counts of A_i
+    are those of A_(i-1) with the chunk's contacts moved from R to the new piece; where R lost no
+    contact and A_(i-1) was strongly connected on an axis, the new piece's contacts decide, and
+    otherwise an SCC test runs on that axis.
 Checks run in the order that rejects most per unit of work (straight removability, interlocking,
 connectivity) and stop at the first failure.
 
@@ -78,7 +83,17 @@ def _prepare(nbr, ray, labels, piece):
             if u >= 0 and part_of[u] != p:
                 base[a, p, part_of[u]] += 1
     base_ok = _base_interlocking(base, n_parts, piece - 1) if piece > 1 else np.zeros((3, 2), np.bool_)
-    return part_of, seeds[:n_seeds], ray_r, base, base_ok
+    r_nbr = np.full((n_vox, 6), -1, np.int32)
+    for v in range(n_vox):
+        if part_of[v] != r_node:
+            continue
+        d = 0
+        for k in range(6):
+            u = nbr[v, k]
+            if u >= 0 and part_of[u] == r_node:
+                r_nbr[v, d] = u
+                d += 1
+    return part_of, seeds[:n_seeds], ray_r, base, base_ok, r_nbr
 
 
 @njit(cache=True, nogil=True)
@@ -109,12 +124,15 @@ def _below(state, bound):
 
 
 @njit(cache=True)
-def _sample_chunk(rng, seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, front_mark, stamp):
-    s = seeds[_below(rng, seeds.shape[0])]
-    chunk[0] = s
-    in_chunk[s] = stamp
+def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stamp):
+    """Grow one raw chunk into `chunk` and stamp it in `in_chunk`; False if it cannot reach n voxels.
+    r_nbr lists each R voxel's R neighbours (-1 after the last); `front_mark` holds `stamp` for the
+    chunk's voxels and its frontier, so one load tells whether a neighbour is new."""
+    v = seeds[_below(rng, seeds.shape[0])]
+    chunk[0] = v
+    in_chunk[v] = stamp
+    front_mark[v] = stamp
     nf = 0
-    v = s
     for j in range(n):
         if j > 0:
             if nf == 0:
@@ -125,9 +143,11 @@ def _sample_chunk(rng, seeds, nbr, part_of, r_node, n, chunk, in_chunk, front, f
             front[pick] = front[nf]
             chunk[j] = v
             in_chunk[v] = stamp
-        for k in range(6):
-            u = nbr[v, k]
-            if u >= 0 and part_of[u] == r_node and in_chunk[u] != stamp and front_mark[u] != stamp:
+        for t in range(6):
+            u = r_nbr[v, t]
+            if u < 0:
+                break
+            if front_mark[u] != stamp:
                 front_mark[u] = stamp
                 front[nf] = u
                 nf += 1
@@ -419,7 +439,7 @@ def _check(chunk, n, piece, topo, node, removal_path, full, scratch, stamp):
     the first failure and returns 0 for any rejected chunk. The chunk's voxels hold `stamp` in
     scratch's `in_chunk`."""
     nbr, _, line, _, coords, index = topo
-    part_of, _, ray_r, base, base_ok = node
+    part_of, _, ray_r, base, base_ok, _ = node
     in_chunk, mark, owner, nxt, groups, line_count, seen, stack, visited, off_queue = scratch
     r_node = piece
     result = 0
@@ -497,7 +517,8 @@ def sample_raw(topo, labels, piece, n, num_samples, seed):
     """Unchecked raw chunks (those that grew to n voxels): int32[k, n]. For testing the sampler."""
     rng = _rng(seed)
     nbr, ray = topo[0], topo[1]
-    part_of, seeds = _prepare(nbr, ray, labels, piece)[:2]
+    node = _prepare(nbr, ray, labels, piece)
+    seeds, r_nbr = node[1], node[5]
     n_vox = labels.shape[0]
     out = np.empty((num_samples, n), np.int32)
     if seeds.shape[0] == 0:
@@ -507,7 +528,7 @@ def sample_raw(topo, labels, piece, n, num_samples, seed):
     front = np.empty(n_vox, np.int32)
     k = 0
     for s in range(num_samples):
-        if _sample_chunk(rng, seeds, nbr, part_of, piece, n, out[k], in_chunk, front, front_mark, s + 1):
+        if _sample_chunk(rng, seeds, r_nbr, n, out[k], in_chunk, front, front_mark, s + 1):
             k += 1
     return out[:k]
 
@@ -551,7 +572,7 @@ def _sample_into(topo, labels, piece, n, num_samples, keep, distinct, removal_pa
     rng = _rng(seed)
     nbr, ray, _, n_lines, _, index = topo
     node = _prepare(nbr, ray, labels, piece)
-    part_of, seeds = node[0], node[1]
+    seeds, r_nbr = node[1], node[5]
     if seeds.shape[0] == 0:
         return 0, 0
     n_vox = labels.shape[0]
@@ -564,7 +585,7 @@ def _sample_into(topo, labels, piece, n, num_samples, keep, distinct, removal_pa
     s = 0
     while s < num_samples and k < keep:
         s += 1
-        if not _sample_chunk(rng, seeds, nbr, part_of, piece, n, chunk, in_chunk, front, front_mark, s):
+        if not _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, s):
             continue
         if _check(chunk, n, piece, topo, node, removal_path, False, scratch, s) != ALL_CHECKS:
             continue
