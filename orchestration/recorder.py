@@ -57,8 +57,12 @@ def best_rank(logdir: Path) -> tuple[float, float]:
 
 
 class Recorder:
-    def __init__(self, logdir: Path, config: TrainConfig, task: Task, step: int, resume: bool):
+    def __init__(
+        self, logdir: Path, config: TrainConfig, task: Task, step: int, resume: bool, sessions: list[dict]
+    ):
+        """`sessions`: the provenance of the processes that trained this run before (when resumed)."""
         self.logdir, self.config, self.task = logdir, config, task
+        self.sessions = [*sessions, ckpt.provenance()]
         logdir.mkdir(parents=True, exist_ok=True)
         # purge_step drops events logged after the checkpoint we resume from, so the curves do not fork.
         self.writer = SummaryWriter(str(logdir), purge_step=step if resume else None)
@@ -75,7 +79,7 @@ class Recorder:
             self.latest,
             step,
             state,
-            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters)),
+            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters), self.sessions),
         )
 
     def best_checkpoint(
@@ -85,7 +89,7 @@ class Recorder:
             self.best,
             step,
             state,
-            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters)),
+            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters), self.sessions),
         )
         if grid is not None:
             self._best_assembly(grid, step)

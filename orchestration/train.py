@@ -69,7 +69,7 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     config = dataclasses.replace(config, net=fit_canvas(task, config.net))
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed))
-    counters, last_score = Counters(), None
+    counters, last_score, sessions = Counters(), None, []
     if resume:
         meta = _restore_latest(logdir, learner)
         ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.net.canvas), logdir)
@@ -79,6 +79,7 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
             (counters.best_rate, counters.best_return), best_rank(logdir)
         )
         last_score = meta.get("validation")
+        sessions = meta.get("sessions", [])
         log.info(
             "resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes
         )
@@ -87,7 +88,7 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
             f"{logdir} already holds a training run; resume it with --resume {logdir} "
             f"or choose another --logdir"
         )
-    recorder = Recorder(logdir, config, task, learner.step, resume)
+    recorder = Recorder(logdir, config, task, learner.step, resume, sessions)
     started_ray = start_ray(config.address)
     run = _Run(config, task, learner, recorder, counters, last_score, began)
     previous = signal.signal(signal.SIGINT, run.request_stop)

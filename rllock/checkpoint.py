@@ -10,8 +10,14 @@ one document that both `--resume` and `generate` read), the validation score and
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import hashlib
 import json
+import os
+import platform
+import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +33,17 @@ from rllock.verifier import CHECKER_VERSION
 
 FORMAT = "rllock-checkpoint"
 META_VERSION = 2
+# Trained checkpoints shipped inside the package (see rllock.pretrained), reached by name.
+SHIPPED = Path(__file__).resolve().parent / "checkpoints"
+SHIPPED_NAME = re.compile(r"^[a-z][a-z0-9]*(-k[0-9]+)?$")
+
+
+def shipped_names(folder: Path | None = None) -> list[str]:
+    """The names of the shipped checkpoints (in `folder`, default `SHIPPED`)."""
+    folder = SHIPPED if folder is None else folder
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if (p / "meta" / "metadata").is_file())
 
 
 def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = None) -> TrainConfig:
@@ -49,8 +66,16 @@ def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = 
     )
 
 
-def meta(config: dict, task: Task, step: int, validation: dict | None, counters: dict) -> dict:
-    """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas."""
+def meta(
+    config: dict,
+    task: Task,
+    step: int,
+    validation: dict | None,
+    counters: dict,
+    sessions: list[dict] | None = None,
+) -> dict:
+    """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas;
+    `sessions`: the `provenance` of each process that trained the run (one more per resume)."""
     return {
         "format": FORMAT,
         "version": META_VERSION,
@@ -59,6 +84,48 @@ def meta(config: dict, task: Task, step: int, validation: dict | None, counters:
         "config": config,
         "validation": validation,
         "counters": counters,
+        "sessions": sessions or [],
+    }
+
+
+def _commit() -> str | None:
+    """The git commit of this source tree (with "-dirty" when it has changes), or None outside git."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def provenance() -> dict:
+    """What made a checkpoint, for the record: command, commit, machine and date."""
+    device = jax.devices()[0]
+    return {
+        "command": " ".join(["rllock", *sys.argv[1:]]),
+        "commit": _commit(),
+        "machine": f"{os.cpu_count()} x {_cpu_model()}, {device.platform} ({device.device_kind})",
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
 
 
@@ -120,12 +187,17 @@ def saved_steps(folder: Path) -> list[int]:
     return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit() and p.is_dir())
 
 
-def find_step_dir(path: Path) -> Path:
+def find_step_dir(path: str | Path, shipped: Path | None = None) -> Path:
     """A step directory from a run's log directory (its best checkpoint, else its latest), a
-    checkpoints folder (its latest step), or a step directory itself."""
+    checkpoints folder (its latest step), a step directory itself, or the name of a shipped checkpoint
+    (`rllock pretrained`) where no such path exists."""
     path = Path(path)
+    shipped = SHIPPED if shipped is None else shipped
+    if not path.exists() and SHIPPED_NAME.match(str(path)) and str(path) in shipped_names(shipped):
+        path = shipped / str(path)
     if not path.is_dir():
-        raise RLLockError(f"no such checkpoint directory: {path}")
+        names = ", ".join(shipped_names(shipped)) or "none"
+        raise RLLockError(f"no such checkpoint directory or shipped checkpoint: {path} (shipped: {names})")
     if (path / "meta").is_dir() and (path / "state").is_dir():
         return path
     for folder in (path / "best", path / "checkpoints", path):

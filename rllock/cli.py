@@ -348,6 +348,69 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_paper(args: argparse.Namespace) -> int:
+    from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
+
+    tasks = parse_paper_tasks(args.tasks)
+    out = Path(args.out) if args.out else None
+    if out is not None and out.parent and not out.parent.is_dir():
+        raise RLLockError(f"--out {out}: no such folder {out.parent}")
+    rows = []
+    for task in tqdm(tasks, desc="bench paper", unit="task"):
+        rows.append(
+            bench_paper_task(
+                task, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed
+            )
+        )
+    table = format_paper_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
+    if out is not None:
+        out.write_text(table)
+    if args.json:
+        sys.stdout.write(json.dumps([row_json(r) for r in rows]) + "\n")
+    else:
+        sys.stdout.write(table)
+    return 0
+
+
+def cmd_pretrained(args: argparse.Namespace) -> int:
+    from rllock import pretrained
+    from rllock.checkpoint import shipped_names
+
+    if args.ship is not None:
+        if args.name is None:
+            raise RLLockError("--ship needs --name, the name to ship the checkpoint under (e.g. cube4-k9)")
+        target = pretrained.ship(Path(args.ship), args.name)
+        size = sum(f.stat().st_size for f in target.rglob("*") if f.is_file())
+        sys.stdout.write(f"shipped {args.name}: {target} ({size / 2**20:.1f} MiB)\n")
+        return 0
+    rows = [pretrained.describe(name) for name in shipped_names()]
+    if args.json:
+        sys.stdout.write(json.dumps(rows) + "\n")
+        return 0
+    if not rows:
+        sys.stdout.write("no shipped checkpoints\n")
+        return 0
+
+    def rate(row: dict) -> str:
+        if row["validation_success"] is None:
+            return "-"
+        return f"{100 * row['validation_success']:.1f}% of {row['validation_episodes']}"
+
+    lines = [
+        "| name | task | canvas | simulations | training (min) | learner steps | validation success "
+        "| commit |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        commit = (r["commit"] or "-")[:12]
+        lines.append(
+            f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {r['training_minutes']} | "
+            f"{r['learner_steps']} | {rate(r)} | {commit} |"
+        )
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
 def cmd_bench_selfplay(args: argparse.Namespace) -> int:
     try:
         counts = [int(c) for c in args.actors.split(",")]
@@ -401,7 +464,8 @@ def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--checkpoint",
         required=True,
-        help="a training run's log directory (its best checkpoint) or one checkpoint directory",
+        help="a training run's log directory (its best checkpoint), one checkpoint directory, or the name "
+        "of a shipped checkpoint (rllock pretrained)",
     )
     p.add_argument("--count", type=int, default=5, help="valid assemblies to find")
     p.add_argument(
@@ -492,6 +556,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
     p.set_defaults(func=cmd_generate)
 
+    p = bench.add_parser(
+        "paper", help="the paper's tasks: shipped checkpoints, untrained search and solver, beside the paper"
+    )
+    p.add_argument(
+        "--tasks", default=None, help="comma-separated names, e.g. cube4-k9,sofa-k19 (default: all)"
+    )
+    p.add_argument("--count", type=int, default=5, help="valid assemblies to find per arm")
+    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
+    p.add_argument("--time-limit", type=_positive_float, default=300.0, help="seconds per arm")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON list")
+    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    p.set_defaults(func=cmd_bench_paper)
+
     p = bench.add_parser("learning", help="a checkpoint against the same search with an untrained network")
     _add_checkpoint_args(p)
     p.add_argument("--json", action="store_true")
@@ -513,6 +591,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_selfplay)
+
+    p = sub.add_parser("pretrained", help="the trained checkpoints shipped with RL-Lock, by name")
+    p.add_argument("--json", action="store_true", help="print one JSON list")
+    p.add_argument(
+        "--ship",
+        metavar="LOGDIR",
+        default=None,
+        help="for maintainers: copy the best checkpoint of this run into the package (parameters only)",
+    )
+    p.add_argument("--name", default=None, help="with --ship: the name, e.g. cube4-k9")
+    p.set_defaults(func=cmd_pretrained)
 
     add_result_commands(sub)
     return parser

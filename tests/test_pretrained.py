@@ -1,0 +1,84 @@
+"""Shipped checkpoints: what `ship` keeps, how names resolve, and that every shipped one loads."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+from helpers import run_cli
+
+from learner.learner import Learner, LearnerConfig
+from rllock import checkpoint as ckpt
+from rllock import pretrained
+from rllock.config import TrainConfig, to_json
+from rllock.env import make_task
+from rllock.errors import RLLockError
+from rllock.inference import load_policy
+from rllock.mcts import MCTSConfig
+from rllock.network import NetConfig
+
+NET = NetConfig(canvas=4, features=(4, 8))
+MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
+
+
+@pytest.fixture()
+def run(tmp_path):
+    """A run directory with one checkpoint (params, optimizer state, provenance), and its learner."""
+    task = make_task("box:4x4x2", 4)
+    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(3))
+    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
+    mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
+    counters = {"seconds": 600.0, "episodes": 40}
+    validation = {"success_rate": 0.25, "episodes": 8}
+    meta = ckpt.meta(to_json(config), task, 7, validation, counters, [ckpt.provenance()])
+    ckpt.save(mngr, 7, learner.state(), meta)
+    mngr.close()
+    return tmp_path / "run", learner
+
+
+def test_ship_keeps_the_parameters_and_metadata_only(run, tmp_path):
+    source, learner = run
+    target = pretrained.ship(source, "box-k4", into=tmp_path / "shipped")
+    saved = ocp.PyTreeCheckpointer().restore((target / "state").absolute())
+    assert set(saved) == {"params"}  # no optimizer state, step or PRNG key
+    for a, b in zip(jax.tree_util.tree_leaves(saved["params"]), jax.tree_util.tree_leaves(learner.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    row = pretrained.describe("box-k4", tmp_path / "shipped")
+    assert row["task"] == "box:4x4x2 K=4" and row["learner_steps"] == 7 and row["training_minutes"] == 10.0
+    assert row["validation_success"] == 0.25 and row["machine"]
+    with pytest.raises(RLLockError, match="bad checkpoint name"):
+        pretrained.ship(source, "Box K4", into=tmp_path / "shipped")
+
+
+def test_a_shipped_name_resolves_where_no_such_path_exists(run, tmp_path, monkeypatch):
+    source, learner = run
+    shipped = tmp_path / "shipped"
+    pretrained.ship(source, "box-k4", into=shipped)
+    monkeypatch.setattr(ckpt, "SHIPPED", shipped)
+    monkeypatch.chdir(tmp_path)
+    policy = load_policy("box-k4")
+    assert policy.step == 7 and policy.task.pieces == 4 and policy.source == str(shipped / "box-k4")
+    (tmp_path / "box-k4").mkdir()  # a path of that name wins over the shipped name
+    with pytest.raises(RLLockError, match="holds no RL-Lock checkpoint"):
+        load_policy("box-k4")
+    with pytest.raises(RLLockError, match=r"no such checkpoint directory or shipped checkpoint.*box-k4"):
+        load_policy("cube9-k3")
+
+
+def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
+    names = ckpt.shipped_names()
+    total = sum(f.stat().st_size for f in ckpt.SHIPPED.rglob("*") if f.is_file()) if names else 0
+    assert total < 40 * 2**20  # the package stays small
+    for name in names:
+        shape, k = re.fullmatch(r"([a-z0-9]+)-k([0-9]+)", name).groups()
+        policy = load_policy(name)
+        assert policy.task.pieces == int(k) and policy.task.shape_name == shape, name
+        row = pretrained.describe(name)
+        assert row["commit"] and row["training_minutes"] > 0 and row["learner_steps"] > 0, name
+    code, out, err = run_cli("pretrained", "--json")
+    assert code == 0, err
+    assert [r["name"] for r in json.loads(out)] == names
