@@ -91,15 +91,21 @@ def meta(
 def _commit() -> str | None:
     """The git commit of this source tree (with "-dirty" when it has changes), or None outside git."""
     root = Path(__file__).resolve().parent.parent
+    # close_fds=False lets subprocess use posix_spawn: no fork in a process where JAX runs threads.
     try:
         head = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            close_fds=False,
         )
         dirty = subprocess.run(
             ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
             capture_output=True,
             text=True,
             timeout=10,
+            close_fds=False,
         )
     except (OSError, subprocess.TimeoutExpired):
         return None

@@ -82,3 +82,22 @@ def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
     code, out, err = run_cli("pretrained", "--json")
     assert code == 0, err
     assert [r["name"] for r in json.loads(out)] == names
+
+
+def test_bench_paper_runs_the_three_arms_and_writes_the_table(tmp_path):
+    table = tmp_path / "table.md"
+    code, out, err = run_cli(
+        "bench", "paper", "--tasks", "cube4-k7", "--count", "1", "--batch", "4", "--time-limit", "5",
+        "--json", "--out", str(table),
+    )  # fmt: skip
+    assert code == 0, err
+    (row,) = json.loads(out)
+    assert row["task"] == "cube4-k7" and row["pieces"] == 7 and row["paper_rllock_s"] == 0.05 * 60
+    assert (row["checkpoint"] is None) == ("cube4-k7" not in ckpt.shipped_names())
+    assert row["solver"]["valid"] == 1  # the solver finds a 4^3 K=7 assembly in well under 5 s
+    assert row["untrained"]["episodes"] >= 4 and row["untrained"]["seconds"] > 0
+    lines = table.read_text().splitlines()
+    assert lines[0].strip().startswith("rllock bench paper --tasks cube4-k7")
+    assert any(line.startswith("| cube4-k7 | ") and line.endswith("| 3.0 | 0.6 |") for line in lines)
+    code, _, err = run_cli("bench", "paper", "--tasks", "cube4-k6")
+    assert code == 2 and "unknown task 'cube4-k6'" in err and len(err.strip().splitlines()) == 1
