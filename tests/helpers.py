@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 
+from rllock import fast
 from rllock import reference as ref
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
 from rllock.env import State, Task, apply_chunk, candidates, initial_state
@@ -25,6 +26,15 @@ def parts_after(task: Task, state: State, chunk: np.ndarray) -> tuple[list[ref.P
     labels[chunk] = state.placed + 1
     parts = [frozenset(coords[v] for v in np.flatnonzero(labels == j)) for j in range(1, state.placed + 2)]
     return parts, frozenset(coords[v] for v in np.flatnonzero(labels == 0))
+
+
+def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:
+    """The checks (fast.CONNECTED | REMOVABLE | INTERLOCKING) that the reference checkers pass on the
+    newest part parts[-1] and the remaining volume `rest`."""
+    bits = fast.CONNECTED if ref.is_connected(rest) else 0
+    bits |= fast.REMOVABLE if ref.is_removable(parts[-1], rest, removal) else 0
+    bits |= fast.INTERLOCKING if len(parts) < 2 or ref.is_interlocking([*parts, rest]) else 0
+    return bits
 
 
 def raw_chunks(task: Task, state: State, rng: np.random.Generator, count: int) -> np.ndarray:

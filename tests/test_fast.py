@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import parts_after, random_valid_states, raw_chunks, voxel_labels
+from helpers import parts_after, random_valid_states, raw_chunks, reference_bits, voxel_labels
 
 from rllock import fast
 from rllock import reference as ref
 from rllock.env import apply_chunk, candidates, initial_state, make_task, sample_accepted
-
-
-def _reference_bits(parts, rest, removal) -> int:
-    bits = fast.CONNECTED if ref.is_connected(rest) else 0
-    bits |= fast.REMOVABLE if ref.is_removable(parts[-1], rest, removal) else 0
-    bits |= fast.INTERLOCKING if len(parts) < 2 or ref.is_interlocking([*parts, rest]) else 0
-    return bits
 
 
 @pytest.mark.parametrize(
@@ -47,7 +40,7 @@ def test_every_check_agrees_with_the_reference(shape, k, removal, episodes):
         )
         for chunk, bits in zip(chunks, got):
             parts, rest = parts_after(task, state, chunk)
-            expected = _reference_bits(parts, rest, removal)
+            expected = reference_bits(parts, rest, removal)
             assert bits == expected, (shape, k, state.placed + 1, chunk.tolist())
             compared += 1
             accepted += expected == fast.ALL_CHECKS
@@ -86,7 +79,7 @@ def test_accepted_chunks_are_exactly_those_the_reference_accepts():
             parts, rest = parts_after(task, state, chunk)
             assert len(set(chunk.tolist())) == task.piece_size
             assert ref.is_connected(parts[-1])
-            assert _reference_bits(parts, rest, "straight") == fast.ALL_CHECKS
+            assert reference_bits(parts, rest, "straight") == fast.ALL_CHECKS
 
 
 def test_sampler_distribution_matches_the_reference_sampler():
