@@ -22,6 +22,7 @@ import ray
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
 from rllock.mcts import Episode, Searcher, TimeSplit, derive_seed, play_groups, searchers
+from rllock.methods import space
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -85,14 +86,21 @@ def evaluate(
 
 class SelfPlayWorker:
     """Plays batches of `episodes` episodes, in `groups` lockstep groups, with the weights it was last
-    given."""
+    given; `method` (`rllock.config.METHODS`) says what one search action is."""
 
     def __init__(
-        self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, groups: int = 1
+        self,
+        spec: TaskSpec,
+        net: NetConfig,
+        mcts: MCTSConfig,
+        method: str,
+        episodes: int,
+        seed: int,
+        groups: int = 1,
     ):
         self.task = spec.make()
         self.mcts = mcts
-        self.searchers = searchers(net, mcts, self.task.piece_size, episodes, groups)
+        self.searchers = searchers(net, mcts, space(method), self.task, episodes, groups)
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -135,9 +143,17 @@ class SelfPlayActor:
     """Plays batches with the latest published weights and pushes them into the replay buffer."""
 
     def __init__(
-        self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, episodes: int, seed: int, groups: int, buffer
+        self,
+        spec: TaskSpec,
+        net: NetConfig,
+        mcts: MCTSConfig,
+        method: str,
+        episodes: int,
+        seed: int,
+        groups: int,
+        buffer,
     ):
-        self.worker = SelfPlayWorker(spec, net, mcts, episodes, seed, groups)
+        self.worker = SelfPlayWorker(spec, net, mcts, method, episodes, seed, groups)
         self.buffer = buffer
 
     def pid(self) -> int:

@@ -27,7 +27,7 @@ def _measure(
     buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
         10_000, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task)
     )
-    pool = ActorPool(TaskSpec.of(task), net, mcts, layout, 100, buffer)
+    pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)
     weights = [params_ref]
     pool.submit_all(weights, 0)  # compile and warm up outside the timed window
     while pool.alive():

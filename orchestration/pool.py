@@ -80,7 +80,16 @@ class ActorPool:
     """Self-play actors, each with one batch in flight. A dead actor process is restarted by Ray and its
     call retried; the pool notices the new process and logs it. An actor that fails for good is dropped."""
 
-    def __init__(self, spec: TaskSpec, net: NetConfig, mcts: MCTSConfig, layout: Layout, seed: int, buffer):
+    def __init__(
+        self,
+        spec: TaskSpec,
+        net: NetConfig,
+        mcts: MCTSConfig,
+        method: str,
+        layout: Layout,
+        seed: int,
+        buffer,
+    ):
         options = dict(
             num_cpus=layout.cpus,
             num_gpus=layout.gpus,
@@ -90,7 +99,7 @@ class ActorPool:
         )
         self.actors = [
             SelfPlayActor.options(**options).remote(
-                spec, net, mcts, layout.episodes, seed + i, layout.groups, buffer
+                spec, net, mcts, method, layout.episodes, seed + i, layout.groups, buffer
             )
             for i in range(layout.actors)
         ]

@@ -43,6 +43,7 @@ from rllock.config import TrainConfig
 from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
 from rllock.errors import RLLockError
 from rllock.mcts import searchers
+from rllock.methods import space, with_method_defaults
 from rllock.network import fit_canvas
 
 log = logging.getLogger(__name__)
@@ -66,7 +67,9 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     began = time.monotonic()
     config.validate()
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    config = dataclasses.replace(config, net=fit_canvas(task, config.net))
+    config = dataclasses.replace(
+        config, net=fit_canvas(task, config.net), mcts=with_method_defaults(config.method, config.mcts)
+    )
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed))
     counters, last_score, sessions = Counters(), None, []
@@ -127,7 +130,8 @@ class _Run:
         self.began = began
         self.schedule = Schedule.start(began, config)
         # Validation runs in this process beside the learner: one lockstep group.
-        self.searchers = searchers(config.net, config.mcts, task.piece_size, config.validation_episodes, 1)
+        self.space = space(config.method)
+        self.searchers = searchers(config.net, config.mcts, self.space, task, config.validation_episodes, 1)
         self.interrupted = False
         self.lag = 0
         # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
@@ -148,8 +152,7 @@ class _Run:
         self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
             config.buffer_capacity,
             self.task.size,
-            config.mcts.candidates,
-            self.task.piece_size,
+            *self.space.action_shape(self.task, config.mcts),
             *compact_dtypes(self.task),
         )
         snapshot = self.recorder.logdir / "replay.npz"
@@ -172,6 +175,7 @@ class _Run:
             TaskSpec.of(self.task),
             config.net,
             config.mcts,
+            config.method,
             layout,
             config.seed * 1000 + 1 + c.episodes,
             self.buffer,

@@ -14,7 +14,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rllock.assembly import read_assembly, write_assembly
-from rllock.config import EVALUATION_MODES, SelfPlayConfig, TrainConfig
+from rllock.config import EVALUATION_MODES, METHODS, SelfPlayConfig, TrainConfig
 from rllock.errors import RLLockError
 from rllock.flags import add_flags, field_docs, from_flags
 from rllock.reference import REMOVAL_MODES
@@ -532,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
         p,
         TrainConfig,
         required_unless="--resume",
-        choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES},
+        choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES, "method": METHODS},
     )
     p.add_argument(
         "--resume",

@@ -17,6 +17,9 @@ from typing import Any
 from rllock.errors import RLLockError
 
 EVALUATION_MODES = ("auto", "per-actor", "lockstep")
+# rl-lock: one action places a whole piece (the paper's method); rl-lock-action: one voxel per action
+# (the paper's RL-Lock_Action baseline; rllock.voxel_search).
+METHODS = ("rl-lock", "rl-lock-action")
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,8 @@ class MCTSConfig:
     candidate actions."""
     gumbel_scale: float = 1.0
     """Scale of the Gumbel noise at the root (0 = deterministic search)."""
+    max_depth: int | None = None
+    """Deepest level a simulation descends to (default: unbounded; rl-lock-action: 32, the paper's)."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +94,9 @@ class TrainConfig:
     """K, the number of pieces."""
     removal: str = "straight"
     """straight: one axis slide per piece; path: DESIA's multi-move test."""
+    method: str = "rl-lock"
+    """rl-lock: MCTS over whole pieces (the paper's method); rl-lock-action: MCTS over single voxels (the
+    paper's baseline; unless given, 128 simulations and depth 32, the paper's settings for it)."""
     resolution: int | None = None
     """For mesh shapes: voxels along the longest side."""
     minutes: float = 10.0
@@ -172,6 +180,10 @@ class TrainConfig:
             raise RLLockError(f"--success-fraction must lie in [0, 1], got {self.success_fraction}")
         if self.learner.batch_size > self.buffer_capacity:
             raise RLLockError("--batch-size cannot exceed --buffer-capacity")
+        if self.method not in METHODS:
+            raise RLLockError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.mcts.max_depth is not None and self.mcts.max_depth < 1:
+            raise RLLockError(f"--max-depth must be at least 1, got {self.mcts.max_depth}")
         if self.selfplay.evaluation not in EVALUATION_MODES:
             raise RLLockError(
                 f"--evaluation must be one of {', '.join(EVALUATION_MODES)}, got {self.selfplay.evaluation!r}"

@@ -23,6 +23,7 @@ from rllock.assembly import PictureWriter, write_assembly
 from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
 from rllock.mcts import Episode, Searcher, derive_seed, play_groups, searchers
+from rllock.methods import space
 from rllock.network import init_params
 
 log = logging.getLogger(__name__)
@@ -35,6 +36,7 @@ class Policy:
     task: Task
     net: NetConfig  # with a concrete canvas
     mcts: MCTSConfig
+    method: str  # rllock.config.METHODS: what one search action is
     params: dict
     source: str  # checkpoint path, or "untrained (seed N)"
     step: int
@@ -55,9 +57,10 @@ def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
         ckpt.check_same_task(meta["task"], expect, step_dir)
     task = ckpt.task_from_identity(meta["task"])
     net, mcts = _configs(meta)
+    method = meta.get("config", {}).get("method", "rl-lock")
     template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
     params = ckpt.restore_like(step_dir, template, partial=True)["params"]
-    return Policy(task, net, mcts, params, str(step_dir), int(meta["step"]))
+    return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
 
 
 def untrained_like(policy: Policy, seed: int) -> Policy:
@@ -66,6 +69,7 @@ def untrained_like(policy: Policy, seed: int) -> Policy:
         policy.task,
         policy.net,
         policy.mcts,
+        policy.method,
         init_params(policy.net, jax.random.PRNGKey(seed)),
         f"untrained (seed {seed})",
         0,
@@ -79,7 +83,7 @@ def local_groups() -> int:
 
 
 def searchers_for(policy: Policy, batch: int, groups: int) -> list[Searcher]:
-    return searchers(policy.net, policy.mcts, policy.task.piece_size, batch, groups)
+    return searchers(policy.net, policy.mcts, space(policy.method), policy.task, batch, groups)
 
 
 def play_round(group_searchers: list[Searcher], policy: Policy, seed: int, round_: int) -> list[Episode]:
@@ -156,7 +160,7 @@ class Collector:
                     removal=task.removal,
                     shape=task.shape_name,
                     method={
-                        "name": "rl-lock",
+                        "name": self.policy.method,
                         "checkpoint": self.policy.source,
                         "step": self.policy.step,
                         "batch": self.batch,

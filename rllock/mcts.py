@@ -18,6 +18,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -46,9 +47,11 @@ class TimeSplit:
 
 
 class NodeStore:
-    """Search nodes on the host: states, candidate chunks (voxel numbers), terminal flags, children.
-    With `parallel`, a simulation's expansions are spread over numba's threads; without, they run on
-    the calling thread (for several stores searched in threads of their own)."""
+    """Search nodes on the host: states, candidate actions (as chunks of voxel numbers, [L, n]),
+    children. Subclasses say what an action is: `ChunkStore` (one whole piece, RL-Lock) and
+    `rllock.voxel_search.VoxelStore` (one voxel, RL-Lock_Action). With `parallel`, a simulation's
+    expansions are spread over numba's threads; without, they run on the calling thread (for several
+    stores searched in threads of their own)."""
 
     def __init__(self, task: Task, config: MCTSConfig, canvas: int, seed: int, parallel: bool = True):
         self.parallel = parallel
@@ -57,13 +60,140 @@ class NodeStore:
         self.canvas_idx = canvas_index(task, canvas)
         self.canvas = canvas
         self.rng = np.random.default_rng(seed)
-        self.states: list[State] = []
+        self.states: list = []
         self.cands: list[np.ndarray] = []
         self.children: dict[tuple[int, int], int] = {}
         self.times = TimeSplit()
+        self.m, self.n = self.action_shape(task, config)
 
-    def add_many(self, states: list[State]) -> list[int]:
-        """Store `states` as nodes, expanding the unsolved ones in one compiled call; their numbers."""
+    @staticmethod
+    def action_shape(task: Task, config: MCTSConfig) -> tuple[int, int]:
+        """(M, n): candidate actions per node at most, voxels per action."""
+        raise NotImplementedError
+
+    def initial(self):
+        """The state an episode starts from."""
+        raise NotImplementedError
+
+    def candidates(self, states: list) -> list[np.ndarray]:
+        """Each state's candidate actions, int32[L, n] (L = 0: terminal)."""
+        raise NotImplementedError
+
+    def apply(self, state, action: np.ndarray):
+        raise NotImplementedError
+
+    def encoded_placed(self, state) -> int:
+        """The `placed` the network's encoding is given for `state` (`rllock.network.encode_batch`)."""
+        return state.placed
+
+    def floor(self, reward: float) -> float:
+        """What a live child reached with `reward` is known to be worth at least (`bounded_value`)."""
+        return 0.0
+
+    def add_many(self, states: list) -> list[int]:
+        """Store `states` as nodes, with their candidates; their numbers."""
+        cands = self.candidates(states)
+        first = len(self.states)
+        self.states.extend(states)
+        self.cands.extend(cands)
+        return list(range(first, len(self.states)))
+
+    def add(self, state) -> int:
+        return self.add_many([state])[0]
+
+    def terminal(self, node: int) -> bool:
+        return len(self.cands[node]) == 0
+
+    def child(self, node: int, action: int) -> int:
+        """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
+        return self.children_of([(node, action)])[0]
+
+    def children_of(self, pairs: list[tuple[int, int]]) -> list[int]:
+        """The nodes reached by (node, candidate action) pairs, expanding the new ones together."""
+        new = list(dict.fromkeys(p for p in pairs if p not in self.children))
+        if new:
+            kids = self.add_many([self.apply(self.states[n], self.cands[n][a]) for n, a in new])
+            self.children.update(zip(new, kids))
+        return [self.children[p] for p in pairs]
+
+    def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(planes [B, C, C, C, P], candidate actions as canvas indices [B, M, n], valid [B, M])."""
+        labels = np.stack([self.states[i].labels for i in nodes])
+        placed = np.array([self.encoded_placed(self.states[i]) for i in nodes])
+        chunks = np.zeros((len(nodes), self.m, self.n), np.int32)
+        valid = np.zeros((len(nodes), self.m), bool)
+        for row, i in enumerate(nodes):
+            c = self.cands[i]
+            chunks[row, : len(c)] = self.canvas_idx[c]
+            valid[row, : len(c)] = True
+        return encode_batch(self.task, labels, placed, self.canvas), chunks, valid
+
+    def expand(self, nodes: np.ndarray, actions: np.ndarray):
+        """One simulation's expansion for every row: (child nodes, reward, discount, value floor and cap,
+        and the children's features). A row below a terminal node stays where it is, with reward 0."""
+        start, sampled = time.perf_counter(), self.times.sampling
+        out = self._expand(nodes.tolist(), actions.tolist())
+        self.times.host += time.perf_counter() - start - (self.times.sampling - sampled)
+        return out
+
+    def _expand(self, nodes: list[int], actions: list[int]):
+        moves = [
+            r
+            for r, (n, a) in enumerate(zip(nodes, actions))
+            if not self.terminal(n) and a < len(self.cands[n])
+        ]
+        kids = np.array(nodes, np.int32)
+        kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
+        reward = np.zeros(len(nodes), np.float32)
+        discount = np.zeros(len(nodes), np.float32)
+        floor = np.zeros(len(nodes), np.float32)
+        cap = np.zeros(len(nodes), np.float32)
+        k = self.task.pieces
+        for r in moves:
+            kid, parent = self.states[int(kids[r])], self.states[nodes[r]]
+            reward[r] = (kid.placed - parent.placed) / k
+            discount[r] = 0.0 if self.terminal(int(kids[r])) else 1.0
+            floor[r] = self.floor(float(reward[r]))
+            cap[r] = (k - 1 - kid.placed) / k
+        planes, chunks, valid = self.features(kids)
+        return kids, reward, discount, floor, cap, planes, chunks, valid
+
+    def episode(self, steps: list[tuple[int, np.ndarray]], last: int) -> Episode:
+        """The episode that took the decisions `steps` ((node, search policy) each) and ended at `last`."""
+        task = self.task
+        t = len(steps)
+        label_dtype, voxel_dtype = compact_dtypes(task)
+        labels = np.zeros((t, task.size), label_dtype)
+        placed = np.zeros(t, np.int16)
+        encoded = np.zeros(t, np.int16)
+        chunks = np.zeros((t, self.m, self.n), voxel_dtype)
+        num_valid = np.zeros(t, np.int16)
+        pi = np.zeros((t, self.m), np.float32)
+        for s, (node, weights) in enumerate(steps):
+            state, cands = self.states[node], self.cands[node]
+            labels[s] = state.labels
+            placed[s] = state.placed
+            encoded[s] = self.encoded_placed(state)
+            chunks[s, : len(cands)] = cands
+            num_valid[s] = len(cands)
+            pi[s] = weights
+        final = self.states[last]
+        # Only accepted pieces are rewarded (1/K each), so z_s = (placed at the end - placed at s) / K.
+        z = ((final.placed - placed) / task.pieces).astype(np.float32)
+        return Episode(labels, encoded, chunks, num_valid, pi, z, final.placed == task.pieces - 1, final)
+
+
+class ChunkStore(NodeStore):
+    """RL-Lock's actions: whole pieces, M_c accepted chunks per node drawn by the compiled sampler."""
+
+    @staticmethod
+    def action_shape(task: Task, config: MCTSConfig) -> tuple[int, int]:
+        return config.candidates, task.piece_size
+
+    def initial(self) -> State:
+        return initial_state(self.task)
+
+    def candidates(self, states: list) -> list[np.ndarray]:
         seeds = self.rng.integers(1 << 31, size=len(states))
         cands = [np.zeros((0, self.task.piece_size), np.int32)] * len(states)
         live = [i for i, s in enumerate(states) if not is_solved(self.task, s)]
@@ -80,93 +210,42 @@ class NodeStore:
             self.times.sampling += time.perf_counter() - start
             for i, c in zip(live, found):
                 cands[i] = c
-        first = len(self.states)
-        self.states.extend(states)
-        self.cands.extend(cands)
-        return list(range(first, len(self.states)))
+        return cands
 
-    def add(self, state: State) -> int:
-        return self.add_many([state])[0]
+    def apply(self, state: State, action: np.ndarray) -> State:
+        return apply_chunk(state, action)
 
-    def terminal(self, node: int) -> bool:
-        return len(self.cands[node]) == 0
-
-    def child(self, node: int, action: int) -> int:
-        """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
-        return self.children_of([(node, action)])[0]
-
-    def children_of(self, pairs: list[tuple[int, int]]) -> list[int]:
-        """The nodes reached by (node, candidate action) pairs, expanding the new ones together."""
-        new = list(dict.fromkeys(p for p in pairs if p not in self.children))
-        if new:
-            kids = self.add_many([apply_chunk(self.states[n], self.cands[n][a]) for n, a in new])
-            self.children.update(zip(new, kids))
-        return [self.children[p] for p in pairs]
-
-    def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(planes [B, C, C, C, P], candidate chunks as canvas indices [B, M, n], valid [B, M])."""
-        m, n = self.config.candidates, self.task.piece_size
-        labels = np.stack([self.states[i].labels for i in nodes])
-        placed = np.array([self.states[i].placed for i in nodes])
-        chunks = np.zeros((len(nodes), m, n), np.int32)
-        valid = np.zeros((len(nodes), m), bool)
-        for row, i in enumerate(nodes):
-            c = self.cands[i]
-            chunks[row, : len(c)] = self.canvas_idx[c]
-            valid[row, : len(c)] = True
-        return encode_batch(self.task, labels, placed, self.canvas), chunks, valid
-
-    def expand(self, nodes: np.ndarray, actions: np.ndarray):
-        """One simulation's expansion for every row: (child nodes, reward, discount, value cap, and the
-        children's features). A row below a terminal node stays where it is, with reward 0."""
-        start, sampled = time.perf_counter(), self.times.sampling
-        out = self._expand(nodes.tolist(), actions.tolist())
-        self.times.host += time.perf_counter() - start - (self.times.sampling - sampled)
-        return out
-
-    def _expand(self, nodes: list[int], actions: list[int]):
-        moves = [
-            r
-            for r, (n, a) in enumerate(zip(nodes, actions))
-            if not self.terminal(n) and a < len(self.cands[n])
-        ]
-        kids = np.array(nodes, np.int32)
-        kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
-        reward = np.zeros(len(nodes), np.float32)
-        discount = np.zeros(len(nodes), np.float32)
-        cap = np.zeros(len(nodes), np.float32)
-        k = self.task.pieces
-        for r in moves:
-            kid = int(kids[r])
-            reward[r] = 1.0 / k
-            discount[r] = 0.0 if self.terminal(kid) else 1.0
-            cap[r] = (k - 1 - self.states[kid].placed) / k
-        planes, chunks, valid = self.features(kids)
-        return kids, reward, discount, cap, planes, chunks, valid
+    def floor(self, reward: float) -> float:
+        # A live child has an accepted candidate: one more piece is certain.
+        return 1.0 / self.task.pieces
 
 
-def bounded_value(value: jax.Array, reward: jax.Array, discount: jax.Array, cap: jax.Array) -> jax.Array:
+def bounded_value(value: jax.Array, discount: jax.Array, floor: jax.Array, cap: jax.Array) -> jax.Array:
     """The network's value clipped to what is known of a child: 0 when terminal; otherwise at least
-    `reward` (1/K: it has an accepted candidate, so one more piece is certain) and at most `cap`
-    ((K-1-i)/K, the pieces still to place)."""
-    return jnp.where(discount > 0, jnp.clip(value, reward, cap), 0.0)
+    `floor` (`NodeStore.floor`: 1/K for a chunk node, which has an accepted candidate) and at most
+    `cap` ((K-1-i)/K, the pieces still to place)."""
+    return jnp.where(discount > 0, jnp.clip(value, floor, cap), 0.0)
 
 
 class Searcher:
-    """A compiled batched search for one task shape (the network's canvas, M_c, n); swap `store`
-    between batches."""
+    """A compiled batched search for one task and action space (the network's canvas, M, n); `play`
+    gives it a fresh store of kind `space` per batch."""
 
-    def __init__(self, net: PolicyValueNet, config: MCTSConfig, piece_size: int, batch: int):
+    def __init__(
+        self, net: PolicyValueNet, config: MCTSConfig, space: type[NodeStore], task: Task, batch: int
+    ):
         if net.config.canvas is None:
             raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
         self.net = net
         self.config = config
+        self.space = space
         self.canvas = net.config.canvas
         self.batch = batch
         self.store: NodeStore | None = None
-        c, m, n = self.canvas, config.candidates, piece_size
+        (m, n), c = space.action_shape(task, config), self.canvas
         shapes = (
             jax.ShapeDtypeStruct((batch,), jnp.int32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
@@ -185,7 +264,7 @@ class Searcher:
 
         def recurrent_fn(params, rng_key, action, embedding):
             del rng_key
-            kids, reward, discount, cap, planes, chunks, valid = io_callback(
+            kids, reward, discount, floor, cap, planes, chunks, valid = io_callback(
                 host_expand, shapes, embedding, action
             )
             logits, value = evaluate(params, planes, chunks, valid)
@@ -193,7 +272,7 @@ class Searcher:
                 reward=reward,
                 discount=discount,
                 prior_logits=logits,
-                value=bounded_value(value, reward, discount, cap),
+                value=bounded_value(value, discount, floor, cap),
             )
             return out, kids
 
@@ -207,6 +286,7 @@ class Searcher:
                 recurrent_fn,
                 num_simulations=config.simulations,
                 invalid_actions=~valid,
+                max_depth=config.max_depth,
                 max_num_considered_actions=config.max_considered,
                 gumbel_scale=config.gumbel_scale,
             )
@@ -233,16 +313,16 @@ class Searcher:
 
 @dataclass(frozen=True)
 class Episode:
-    """One self-play episode, compact: states as labels, candidates as voxel numbers."""
+    """One self-play episode, compact: states as labels, candidate actions as voxel numbers."""
 
     labels: np.ndarray  # int8/int16[T, N] (env.compact_dtypes): the state before each decision
-    placed: np.ndarray  # int16[T]
+    placed: np.ndarray  # int16[T]: the `placed` its encoding is given (NodeStore.encoded_placed)
     chunks: np.ndarray  # int16/int32[T, M, n] (env.compact_dtypes): candidate voxel numbers, 0-padded
     num_valid: np.ndarray  # int16[T]: how many candidates are real
     pi: np.ndarray  # float32[T, M]: the search policy
     z: np.ndarray  # float32[T]: cumulative reward from each state to the end
     success: bool
-    final: State  # the last state reached
+    final: Any  # the last state reached (env.State, or voxel_env.VoxelState for voxel actions)
 
 
 def play(
@@ -258,8 +338,8 @@ def play(
     """`searcher.batch` episodes in lockstep from the empty state; each decision takes the search's
     action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
     batch = searcher.batch
-    store = NodeStore(task, searcher.config, searcher.canvas, seed, parallel)
-    roots = np.array(store.add_many([initial_state(task) for _ in range(batch)]), np.int32)
+    store = searcher.space(task, searcher.config, searcher.canvas, seed, parallel)
+    roots = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
     trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
     active = np.array([not store.terminal(r) for r in roots])
     while active.any():
@@ -272,7 +352,7 @@ def play(
         active[rows] = [not store.terminal(int(roots[b])) for b in rows]
     if times is not None:
         times.add(store.times)
-    return [_episode(task, store, trace[b], int(roots[b]), searcher.config.candidates) for b in range(batch)]
+    return [store.episode(trace[b], int(roots[b])) for b in range(batch)]
 
 
 def play_groups(
@@ -313,10 +393,12 @@ def play_groups(
 
 
 def searchers(
-    net: NetConfig, config: MCTSConfig, piece_size: int, episodes: int, groups: int
+    net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, episodes: int, groups: int
 ) -> list[Searcher]:
     """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
-    return [Searcher(PolicyValueNet(net), config, piece_size, size) for size in group_sizes(episodes, groups)]
+    return [
+        Searcher(PolicyValueNet(net), config, space, task, size) for size in group_sizes(episodes, groups)
+    ]
 
 
 def derive_seed(*parts: int) -> int:
@@ -329,24 +411,3 @@ def group_sizes(episodes: int, groups: int) -> list[int]:
     """`episodes` split into at most `groups` lockstep groups of nearly equal size."""
     groups = max(1, min(groups, episodes))
     return [episodes // groups + (g < episodes % groups) for g in range(groups)]
-
-
-def _episode(task: Task, store: NodeStore, steps: list[tuple[int, np.ndarray]], last: int, m: int) -> Episode:
-    t, n = len(steps), task.piece_size
-    label_dtype, voxel_dtype = compact_dtypes(task)
-    labels = np.zeros((t, task.size), label_dtype)
-    placed = np.zeros(t, np.int16)
-    chunks = np.zeros((t, m, n), voxel_dtype)
-    num_valid = np.zeros(t, np.int16)
-    pi = np.zeros((t, m), np.float32)
-    for s, (node, weights) in enumerate(steps):
-        cands = store.cands[node]
-        labels[s] = store.states[node].labels
-        placed[s] = store.states[node].placed
-        chunks[s, : len(cands)] = cands
-        num_valid[s] = len(cands)
-        pi[s] = weights
-    final = store.states[last]
-    # Each step's chunk was accepted (reward 1/K), so z_s = (placed at the end - placed at s) / K.
-    z = ((final.placed - placed) / task.pieces).astype(np.float32)
-    return Episode(labels, placed, chunks, num_valid, pi, z, is_solved(task, final), final)

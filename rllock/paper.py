@@ -87,7 +87,8 @@ def _untrained_policy(task: PaperTask, seed: int) -> Policy:
     """The untrained arm where nothing is shipped: the default network and search for the task."""
     t = make_task(task.shape, task.pieces)
     net = fit_canvas(t, NetConfig())
-    return Policy(t, net, MCTSConfig(), init_params(net, jax.random.PRNGKey(seed)), f"untrained ({seed})", 0)
+    params = init_params(net, jax.random.PRNGKey(seed))
+    return Policy(t, net, MCTSConfig(), "rl-lock", params, f"untrained ({seed})", 0)
 
 
 def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: float, seed: int) -> PaperRow:

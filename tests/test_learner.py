@@ -14,7 +14,7 @@ from rllock.config import TrainConfig, to_json
 from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.inference import load_policy
-from rllock.mcts import MCTSConfig, Searcher, play
+from rllock.mcts import ChunkStore, MCTSConfig, Searcher, play
 from rllock.network import NetConfig, PolicyValueNet
 
 NET = NetConfig(canvas=4, features=(4, 8))
@@ -24,7 +24,7 @@ MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8
 @pytest.fixture(scope="module")
 def task_and_episodes():
     task = make_task("box:4x4x2", 4)
-    searcher = Searcher(PolicyValueNet(NET), MCTS, task.piece_size, batch=8)
+    searcher = Searcher(PolicyValueNet(NET), MCTS, ChunkStore, task, batch=8)
     learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(0))
     return task, play(searcher, learner.params, task, jax.random.PRNGKey(2), seed=1)
 

@@ -6,8 +6,8 @@ import pytest
 
 from rllock.env import final_labels, initial_state, make_task
 from rllock.mcts import (
+    ChunkStore,
     MCTSConfig,
-    NodeStore,
     Searcher,
     bounded_value,
     derive_seed,
@@ -24,14 +24,15 @@ SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=
 
 def test_expansion_rewards_terminals_and_memo():
     task = make_task("box:4x4x2", 4)  # n = 8
-    store = NodeStore(task, SMALL, 4, seed=0)
+    store = ChunkStore(task, SMALL, 4, seed=0)
     root = store.add(initial_state(task))
     assert 0 < len(store.cands[root]) <= SMALL.candidates
-    kids, reward, discount, cap, planes, chunks, valid = store.expand(
+    kids, reward, discount, floor, cap, planes, chunks, valid = store.expand(
         np.array([root, root]), np.array([0, 0])
     )
     assert kids[0] == kids[1] and store.child(root, 0) == kids[0]  # the same (node, action) -> one node
     np.testing.assert_allclose(reward, 1 / 4)
+    np.testing.assert_allclose(floor, 1 / 4)  # a live chunk node has an accepted candidate
     np.testing.assert_allclose(cap, 2 / 4)  # one piece placed, two still to place for K = 4
     assert planes.shape == (2, 4, 4, 4, 7) and valid[0].sum() == len(store.cands[kids[0]])
     # An action past the candidates, or any action below a terminal node, earns nothing and stays put.
@@ -47,17 +48,17 @@ def test_expansion_rewards_terminals_and_memo():
 
 def test_child_values_are_clipped_to_what_is_known():
     value = np.array([0.0, 0.9, 0.3, 0.9], np.float32)
-    reward = np.array([0.25, 0.25, 0.25, 0.25], np.float32)
+    floor = np.array([0.25, 0.25, 0.25, 0.25], np.float32)
     discount = np.array([1.0, 1.0, 1.0, 0.0], np.float32)  # the last child is terminal
     cap = np.array([0.5, 0.5, 0.5, 0.0], np.float32)
-    np.testing.assert_allclose(np.asarray(bounded_value(value, reward, discount, cap)), [0.25, 0.5, 0.3, 0.0])
+    np.testing.assert_allclose(np.asarray(bounded_value(value, discount, floor, cap)), [0.25, 0.5, 0.3, 0.0])
 
 
 @pytest.fixture(scope="module")
 def episodes():
     task = make_task("box:4x4x2", 3)
     config = NetConfig(canvas=4, features=(4, 8))
-    searcher = Searcher(PolicyValueNet(config), SMALL, task.piece_size, batch=6)
+    searcher = Searcher(PolicyValueNet(config), SMALL, ChunkStore, task, batch=6)
     params = init_params(config, jax.random.PRNGKey(0))
     return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=3)
 
@@ -88,7 +89,7 @@ def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
     task = make_task("box:4x4x2", 3)
     config = NetConfig(canvas=4, features=(4, 8))
     params = init_params(config, jax.random.PRNGKey(0))
-    group_searchers = searchers(config, SMALL, task.piece_size, 5, 2)
+    group_searchers = searchers(config, SMALL, ChunkStore, task, 5, 2)
     assert [s.batch for s in group_searchers] == [3, 2] and group_sizes(5, 9) == [1] * 5
     key = jax.random.PRNGKey(4)
     together = play_groups(group_searchers, params, task, key, seed=11)
