@@ -57,6 +57,19 @@ class TaskSpec:
 
 
 @dataclass(frozen=True)
+class PlaySpec:
+    """What a self-play worker plays: `episodes` episodes of the task per batch, in `groups` lockstep
+    groups, with this network and search; `method` (`rllock.config.METHODS`) says what an action is."""
+
+    task: TaskSpec
+    net: NetConfig
+    mcts: MCTSConfig
+    method: str
+    episodes: int
+    groups: int = 1
+
+
+@dataclass(frozen=True)
 class PlayStats:
     episodes: int
     successes: int
@@ -85,22 +98,14 @@ def evaluate(
 
 
 class SelfPlayWorker:
-    """Plays batches of `episodes` episodes, in `groups` lockstep groups, with the weights it was last
-    given; `method` (`rllock.config.METHODS`) says what one search action is."""
+    """Plays batches as `spec` says, with the weights it was last given."""
 
-    def __init__(
-        self,
-        spec: TaskSpec,
-        net: NetConfig,
-        mcts: MCTSConfig,
-        method: str,
-        episodes: int,
-        seed: int,
-        groups: int = 1,
-    ):
-        self.task = spec.make()
-        self.mcts = mcts
-        self.searchers = searchers(net, mcts, space(method), self.task, episodes, groups)
+    def __init__(self, spec: PlaySpec, seed: int):
+        self.task = spec.task.make()
+        self.mcts = spec.mcts
+        self.searchers = searchers(
+            spec.net, spec.mcts, space(spec.method), self.task, spec.episodes, spec.groups
+        )
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -142,18 +147,8 @@ class SelfPlayWorker:
 class SelfPlayActor:
     """Plays batches with the latest published weights and pushes them into the replay buffer."""
 
-    def __init__(
-        self,
-        spec: TaskSpec,
-        net: NetConfig,
-        mcts: MCTSConfig,
-        method: str,
-        episodes: int,
-        seed: int,
-        groups: int,
-        buffer,
-    ):
-        self.worker = SelfPlayWorker(spec, net, mcts, method, episodes, seed, groups)
+    def __init__(self, spec: PlaySpec, seed: int, buffer):
+        self.worker = SelfPlayWorker(spec, seed)
         self.buffer = buffer
 
     def pid(self) -> int:

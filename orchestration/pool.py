@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 
-from actors.selfplay import PlayStats, SelfPlayActor, TaskSpec, actor_env
+from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, TaskSpec, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.errors import RLLockError
 
@@ -99,7 +99,7 @@ class ActorPool:
         )
         self.actors = [
             SelfPlayActor.options(**options).remote(
-                spec, net, mcts, method, layout.episodes, seed + i, layout.groups, buffer
+                PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), seed + i, buffer
             )
             for i in range(layout.actors)
         ]

@@ -12,7 +12,7 @@ import numpy as np
 from rllock import fast
 from rllock import reference as ref
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
-from rllock.env import State, Task, apply_chunk, candidates, initial_state
+from rllock.env import State, Task, apply_chunk, candidates, initial_state, make_task
 
 
 def voxel_labels(task: Task, state: State) -> dict[ref.Voxel, int]:
@@ -26,6 +26,20 @@ def parts_after(task: Task, state: State, chunk: np.ndarray) -> tuple[list[ref.P
     labels[chunk] = state.placed + 1
     parts = [frozenset(coords[v] for v in np.flatnonzero(labels == j)) for j in range(1, state.placed + 2)]
     return parts, frozenset(coords[v] for v in np.flatnonzero(labels == 0))
+
+
+def untrained_episodes(space, mcts, batch: int, seed: int) -> tuple[Task, list]:
+    """Episodes of box:4x4x2 K=3 played by the batched search with a small untrained network."""
+    import jax
+
+    from rllock.mcts import Searcher, play
+    from rllock.network import NetConfig, PolicyValueNet, init_params
+
+    task = make_task("box:4x4x2", 3)
+    config = NetConfig(canvas=4, features=(4, 8))
+    searcher = Searcher(PolicyValueNet(config), mcts, space, task, batch=batch)
+    params = init_params(config, jax.random.PRNGKey(0))
+    return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=seed)
 
 
 def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:

@@ -3,12 +3,12 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from helpers import untrained_episodes
 
 from rllock.env import final_labels, initial_state, make_task
 from rllock.mcts import (
     ChunkStore,
     MCTSConfig,
-    Searcher,
     bounded_value,
     derive_seed,
     group_sizes,
@@ -16,7 +16,7 @@ from rllock.mcts import (
     play_groups,
     searchers,
 )
-from rllock.network import NetConfig, PolicyValueNet, init_params
+from rllock.network import NetConfig, init_params
 from rllock.verifier import verify_labels
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -56,11 +56,7 @@ def test_child_values_are_clipped_to_what_is_known():
 
 @pytest.fixture(scope="module")
 def episodes():
-    task = make_task("box:4x4x2", 3)
-    config = NetConfig(canvas=4, features=(4, 8))
-    searcher = Searcher(PolicyValueNet(config), SMALL, ChunkStore, task, batch=6)
-    params = init_params(config, jax.random.PRNGKey(0))
-    return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=3)
+    return untrained_episodes(ChunkStore, SMALL, batch=6, seed=3)
 
 
 def test_episode_records_are_consistent(episodes):

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 import pytest
+from helpers import untrained_episodes
 
-from rllock.env import final_labels, make_task
-from rllock.mcts import MCTSConfig, Searcher, play
+from rllock.env import final_labels
+from rllock.mcts import MCTSConfig
 from rllock.methods import with_method_defaults
-from rllock.network import NetConfig, PolicyValueNet, init_params
 from rllock.verifier import verify_labels
 from rllock.voxel_env import initial_voxel_state, legal_mask, step
 from rllock.voxel_search import VoxelStore
@@ -19,11 +18,7 @@ SMALL = MCTSConfig(simulations=8, max_considered=4, max_depth=6)
 
 @pytest.fixture(scope="module")
 def episodes():
-    task = make_task("box:4x4x2", 3)  # n = 10: 20 voxel decisions for a success
-    config = NetConfig(canvas=4, features=(4, 8))
-    searcher = Searcher(PolicyValueNet(config), SMALL, VoxelStore, task, batch=8)
-    params = init_params(config, jax.random.PRNGKey(0))
-    return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=5)
+    return untrained_episodes(VoxelStore, SMALL, batch=8, seed=5)  # n = 10: 20 voxel decisions
 
 
 def test_voxel_episodes_take_legal_voxels_and_score_only_accepted_pieces(episodes):
