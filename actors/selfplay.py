@@ -21,8 +21,8 @@ import ray
 
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
-from rllock.mcts import Episode, Searcher, TimeSplit, derive_seed, play_groups, searchers
-from rllock.methods import space
+from rllock.mcts import Episode, Player, TimeSplit, derive_seed, play_groups
+from rllock.methods import players
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -83,7 +83,7 @@ class PlayStats:
 
 
 def evaluate(
-    searchers: list[Searcher],
+    searchers: list[Player],
     params,
     task: Task,
     key: jax.Array,
@@ -102,10 +102,9 @@ class SelfPlayWorker:
 
     def __init__(self, spec: PlaySpec, seed: int):
         self.task = spec.task.make()
-        self.mcts = spec.mcts
-        self.searchers = searchers(
-            spec.net, spec.mcts, space(spec.method), self.task, spec.episodes, spec.groups
-        )
+        # PPO runs no search: its decisions cost one network call each, not simulations.
+        self.simulations_per_decision = 0 if spec.method == "ppo" else spec.mcts.simulations
+        self.searchers = players(spec.method, spec.net, spec.mcts, self.task, spec.episodes, spec.groups)
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -133,7 +132,7 @@ class SelfPlayWorker:
             len(episodes),
             sum(e.success for e in episodes),
             decisions,
-            decisions * self.mcts.simulations,
+            decisions * self.simulations_per_decision,
             self.version,
             os.getpid(),
             peak_rss_mb(),

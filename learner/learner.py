@@ -12,6 +12,7 @@ import optax
 from rllock.config import LearnerConfig
 from rllock.env import Task
 from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
+from rllock.ppo import ppo_loss
 from rllock.topology import symmetries
 
 
@@ -27,7 +28,22 @@ def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):
 
 @partial(jax.jit, static_argnames=("net", "optimizer"))
 def update_step(params, opt_state, batch, *, net: PolicyValueNet, optimizer: optax.GradientTransformation):
+    """One step on the search methods' loss; batch = (planes, chunks, valid, pi, z)."""
     grads, (policy, value_loss) = jax.grad(loss_fn, has_aux=True)(params, net, *batch)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, policy, value_loss
+
+
+@partial(jax.jit, static_argnames=("net", "optimizer", "config"))
+def ppo_update_step(
+    params, opt_state, batch, *, net: PolicyValueNet, optimizer: optax.GradientTransformation, config
+):
+    """One step on PPO's loss (`rllock.ppo.ppo_loss`); batch = (planes, chunks, valid, behaviour pi,
+    actions, z)."""
+    loss = partial(
+        ppo_loss, clip=config.clip_ratio, value_coef=config.value_coef, entropy_coef=config.entropy_coef
+    )
+    grads, (policy, value_loss, _) = jax.grad(loss, has_aux=True)(params, net, *batch)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, policy, value_loss
 
@@ -47,9 +63,18 @@ def augment(sample: dict[str, np.ndarray], perms: np.ndarray, seed: int) -> dict
 
 
 class Learner:
-    def __init__(self, task: Task, net_config: NetConfig, config: LearnerConfig, key: jax.Array):
-        """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is."""
+    def __init__(
+        self,
+        task: Task,
+        net_config: NetConfig,
+        config: LearnerConfig,
+        key: jax.Array,
+        method: str = "rl-lock",
+    ):
+        """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is.
+        `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error."""
         self.task = task
+        self.ppo = method == "ppo"
         self.net = PolicyValueNet(net_config)
         self.net_config = net_config
         self.config = config
@@ -62,24 +87,29 @@ class Learner:
         self._symmetries = symmetries(task.topology) if config.symmetries else None
 
     def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
-        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z). With a
-        `seed` (and symmetries on), each transition is first mapped through a random symmetry."""
+        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z; for PPO
+        pi, actions, z). With a `seed` (and symmetries on), each transition is first mapped through a
+        random symmetry."""
         if seed is not None and self._symmetries is not None:
             sample = augment(sample, self._symmetries, seed)
         m = sample["chunks"].shape[1]
         planes = encode_batch(self.task, sample["labels"], sample["placed"], self.net_config.canvas)
         chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
         valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
+        if self.ppo:
+            return planes, chunks, valid, sample["pi"], sample["actions"].astype(np.int32), sample["z"]
         return planes, chunks, valid, sample["pi"], sample["z"]
 
     def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
-        self.params, self.opt_state, policy, value_loss = update_step(
-            self.params,
-            self.opt_state,
-            self.prepare(sample, self.next_seed()),
-            net=self.net,
-            optimizer=self.optimizer,
-        )
+        batch = self.prepare(sample, self.next_seed())
+        if self.ppo:
+            self.params, self.opt_state, policy, value_loss = ppo_update_step(
+                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer, config=self.config
+            )
+        else:
+            self.params, self.opt_state, policy, value_loss = update_step(
+                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer
+            )
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
 

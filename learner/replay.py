@@ -33,6 +33,7 @@ class ReplayBuffer:
         self.num_valid = np.zeros(capacity, np.int16)
         self.pi = np.zeros((capacity, candidates), np.float32)
         self.z = np.zeros(capacity, np.float32)
+        self.actions = np.zeros(capacity, np.int16)  # the candidate taken (on-policy methods only)
         self.success = np.zeros(capacity, bool)  # the transition's episode succeeded
         self.size = 0
         self.cursor = 0
@@ -47,6 +48,7 @@ class ReplayBuffer:
             self.num_valid[i] = episode.num_valid[t]
             self.pi[i] = episode.pi[t]
             self.z[i] = episode.z[t]
+            self.actions[i] = 0 if episode.actions is None else episode.actions[t]
             self.success[i] = episode.success
             self.cursor = (i + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)
@@ -72,12 +74,13 @@ class ReplayBuffer:
             "num_valid": self.num_valid[idx],
             "pi": self.pi[idx],
             "z": self.z[idx],
+            "actions": self.actions[idx],
         }
 
     def __len__(self) -> int:
         return self.size
 
-    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z", "success")
+    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z", "actions", "success")
 
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""

@@ -42,8 +42,7 @@ from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig
 from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
 from rllock.errors import RLLockError
-from rllock.mcts import searchers
-from rllock.methods import space, with_method_defaults
+from rllock.methods import players, space, with_method_defaults
 from rllock.network import fit_canvas
 
 log = logging.getLogger(__name__)
@@ -67,11 +66,9 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     began = time.monotonic()
     config.validate()
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    config = dataclasses.replace(
-        config, net=fit_canvas(task, config.net), mcts=with_method_defaults(config.method, config.mcts)
-    )
+    config = dataclasses.replace(with_method_defaults(config), net=fit_canvas(task, config.net))
     logdir = Path(config.logdir)
-    learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed))
+    learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
     counters, last_score, sessions = Counters(), None, []
     if resume:
         meta = _restore_latest(logdir, learner)
@@ -131,7 +128,7 @@ class _Run:
         self.schedule = Schedule.start(began, config)
         # Validation runs in this process beside the learner: one lockstep group.
         self.space = space(config.method)
-        self.searchers = searchers(config.net, config.mcts, self.space, task, config.validation_episodes, 1)
+        self.searchers = players(config.method, config.net, config.mcts, task, config.validation_episodes, 1)
         self.interrupted = False
         self.lag = 0
         # The fastest self-play batch so far (the first includes compiling), to estimate a validation.

@@ -17,9 +17,8 @@ from typing import Any
 from rllock.errors import RLLockError
 
 EVALUATION_MODES = ("auto", "per-actor", "lockstep")
-# rl-lock: one action places a whole piece (the paper's method); rl-lock-action: one voxel per action
-# (the paper's RL-Lock_Action baseline; rllock.voxel_search).
-METHODS = ("rl-lock", "rl-lock-action")
+# What trains the network: see rllock.methods.
+METHODS = ("rl-lock", "rl-lock-action", "ppo")
 
 
 @dataclass(frozen=True)
@@ -70,6 +69,12 @@ class LearnerConfig:
     symmetries: bool = True
     """Map each sampled transition through a random symmetry of the shape (axis permutations and
     reflections)."""
+    clip_ratio: float = 0.2
+    """PPO only: the clipping range eps of the probability ratio."""
+    value_coef: float = 0.5
+    """PPO only: weight of the value loss."""
+    entropy_coef: float = 0.01
+    """PPO only: weight of the entropy bonus."""
 
 
 @dataclass(frozen=True)
@@ -95,8 +100,9 @@ class TrainConfig:
     removal: str = "straight"
     """straight: one axis slide per piece; path: DESIA's multi-move test."""
     method: str = "rl-lock"
-    """rl-lock: MCTS over whole pieces (the paper's method); rl-lock-action: MCTS over single voxels (the
-    paper's baseline; unless given, 128 simulations and depth 32, the paper's settings for it)."""
+    """rl-lock: MCTS over whole pieces (the paper's method); rl-lock-action: MCTS over single voxels (a
+    baseline; unless given, 128 simulations and depth 32, the paper's settings for it); ppo: PPO over
+    single voxels (a baseline; unless given, a 2,048-transition buffer, replay ratio 4, policy lag 1)."""
     resolution: int | None = None
     """For mesh shapes: voxels along the longest side."""
     minutes: float = 10.0

@@ -22,8 +22,8 @@ from rllock import checkpoint as ckpt
 from rllock.assembly import PictureWriter, write_assembly
 from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
-from rllock.mcts import Episode, Searcher, derive_seed, play_groups, searchers
-from rllock.methods import space
+from rllock.mcts import Episode, Player, derive_seed, play_groups
+from rllock.methods import players
 from rllock.network import init_params
 
 log = logging.getLogger(__name__)
@@ -82,11 +82,11 @@ def local_groups() -> int:
     return (os.cpu_count() or 1) if jax.default_backend() == "cpu" else 1
 
 
-def searchers_for(policy: Policy, batch: int, groups: int) -> list[Searcher]:
-    return searchers(policy.net, policy.mcts, space(policy.method), policy.task, batch, groups)
+def searchers_for(policy: Policy, batch: int, groups: int) -> list[Player]:
+    return players(policy.method, policy.net, policy.mcts, policy.task, batch, groups)
 
 
-def play_round(group_searchers: list[Searcher], policy: Policy, seed: int, round_: int) -> list[Episode]:
+def play_round(group_searchers: list[Player], policy: Policy, seed: int, round_: int) -> list[Episode]:
     """Round `round_` of the protocol with seed `seed` (module docstring)."""
     key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
     return play_groups(group_searchers, policy.params, policy.task, key, seed=derive_seed(seed, round_))

@@ -16,9 +16,10 @@ untrained network then tells a live child from a dead end one level earlier.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -294,6 +295,35 @@ class Searcher:
 
         self._search = jax.jit(search)
 
+    def play(
+        self,
+        params,
+        task: Task,
+        key: jax.Array,
+        *,
+        seed: int,
+        times: TimeSplit | None = None,
+        parallel: bool = True,
+    ) -> list[Episode]:
+        """`batch` episodes in lockstep from the empty state; each decision takes the search's
+        action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
+        batch = self.batch
+        store = self.space(task, self.config, self.canvas, seed, parallel)
+        roots = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
+        trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
+        active = np.array([not store.terminal(r) for r in roots])
+        while active.any():
+            key, sub = jax.random.split(key)
+            actions, weights, _ = self.search(params, sub, store, roots)
+            rows = np.flatnonzero(active)
+            for b in rows:
+                trace[b].append((int(roots[b]), weights[b]))
+            roots[rows] = store.children_of([(int(roots[b]), int(actions[b])) for b in rows])
+            active[rows] = [not store.terminal(int(roots[b])) for b in rows]
+        if times is not None:
+            times.add(store.times)
+        return [store.episode(trace[b], int(roots[b])) for b in range(batch)]
+
     def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
         """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
         self.store = store
@@ -323,40 +353,28 @@ class Episode:
     z: np.ndarray  # float32[T]: cumulative reward from each state to the end
     success: bool
     final: Any  # the last state reached (env.State, or voxel_env.VoxelState for voxel actions)
+    actions: np.ndarray | None = None  # int16[T]: the candidate taken, for on-policy learning (PPO)
 
 
-def play(
-    searcher: Searcher,
-    params,
-    task: Task,
-    key: jax.Array,
-    *,
-    seed: int,
-    times: TimeSplit | None = None,
-    parallel: bool = True,
-) -> list[Episode]:
-    """`searcher.batch` episodes in lockstep from the empty state; each decision takes the search's
-    action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
-    batch = searcher.batch
-    store = searcher.space(task, searcher.config, searcher.canvas, seed, parallel)
-    roots = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
-    trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
-    active = np.array([not store.terminal(r) for r in roots])
-    while active.any():
-        key, sub = jax.random.split(key)
-        actions, weights, _ = searcher.search(params, sub, store, roots)
-        rows = np.flatnonzero(active)
-        for b in rows:
-            trace[b].append((int(roots[b]), weights[b]))
-        roots[rows] = store.children_of([(int(roots[b]), int(actions[b])) for b in rows])
-        active[rows] = [not store.terminal(int(roots[b])) for b in rows]
-    if times is not None:
-        times.add(store.times)
-    return [store.episode(trace[b], int(roots[b])) for b in range(batch)]
+class Player(Protocol):
+    """Plays lockstep batches of `batch` episodes: a `Searcher`, or PPO's `rllock.ppo.PolicyPlayer`."""
+
+    batch: int
+
+    def play(
+        self,
+        params,
+        task: Task,
+        key: jax.Array,
+        *,
+        seed: int,
+        times: TimeSplit | None = None,
+        parallel: bool = True,
+    ) -> list[Episode]: ...
 
 
 def play_groups(
-    searchers: list[Searcher],
+    searchers: Sequence[Player],
     params,
     task: Task,
     key: jax.Array,
@@ -370,12 +388,11 @@ def play_groups(
     threads. Group g uses key fold_in(key, g) and node seed derive_seed(seed, g); `times` sums over the groups
     (thread-seconds)."""
     if len(searchers) == 1:
-        return play(searchers[0], params, task, key, seed=seed, times=times)
+        return searchers[0].play(params, task, key, seed=seed, times=times)
     splits = [TimeSplit() for _ in searchers]
 
     def group(g: int) -> list[Episode]:
-        return play(
-            searchers[g],
+        return searchers[g].play(
             params,
             task,
             jax.random.fold_in(key, g),

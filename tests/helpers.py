@@ -32,14 +32,14 @@ def untrained_episodes(space, mcts, batch: int, seed: int) -> tuple[Task, list]:
     """Episodes of box:4x4x2 K=3 played by the batched search with a small untrained network."""
     import jax
 
-    from rllock.mcts import Searcher, play
+    from rllock.mcts import Searcher
     from rllock.network import NetConfig, PolicyValueNet, init_params
 
     task = make_task("box:4x4x2", 3)
     config = NetConfig(canvas=4, features=(4, 8))
     searcher = Searcher(PolicyValueNet(config), mcts, space, task, batch=batch)
     params = init_params(config, jax.random.PRNGKey(0))
-    return task, play(searcher, params, task, jax.random.PRNGKey(1), seed=seed)
+    return task, searcher.play(params, task, jax.random.PRNGKey(1), seed=seed)
 
 
 def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:

@@ -14,7 +14,7 @@ from rllock.config import TrainConfig, to_json
 from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.inference import load_policy
-from rllock.mcts import ChunkStore, MCTSConfig, Searcher, play
+from rllock.mcts import ChunkStore, MCTSConfig, Searcher
 from rllock.network import NetConfig, PolicyValueNet
 
 NET = NetConfig(canvas=4, features=(4, 8))
@@ -26,7 +26,7 @@ def task_and_episodes():
     task = make_task("box:4x4x2", 4)
     searcher = Searcher(PolicyValueNet(NET), MCTS, ChunkStore, task, batch=8)
     learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(0))
-    return task, play(searcher, learner.params, task, jax.random.PRNGKey(2), seed=1)
+    return task, searcher.play(learner.params, task, jax.random.PRNGKey(2), seed=1)
 
 
 def test_replay_buffer_is_a_bounded_ring(task_and_episodes):

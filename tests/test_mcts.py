@@ -12,7 +12,6 @@ from rllock.mcts import (
     bounded_value,
     derive_seed,
     group_sizes,
-    play,
     play_groups,
     searchers,
 )
@@ -92,7 +91,7 @@ def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
     apart = [
         e
         for g, s in enumerate(group_searchers)
-        for e in play(s, params, task, jax.random.fold_in(key, g), seed=derive_seed(11, g), parallel=False)
+        for e in s.play(params, task, jax.random.fold_in(key, g), seed=derive_seed(11, g), parallel=False)
     ]
     assert len(together) == 5
     for a, b in zip(together, apart):
