@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import untrained_episodes
 
+from rllock.config import TrainConfig
 from rllock.env import final_labels
 from rllock.mcts import MCTSConfig
 from rllock.methods import with_method_defaults
@@ -46,10 +49,14 @@ def test_voxel_episodes_take_legal_voxels_and_score_only_accepted_pieces(episode
             assert e.final.failed or not legal_mask(task, e.final).any()
 
 
-def test_rl_lock_action_takes_the_papers_settings_unless_others_are_given():
-    general = MCTSConfig()
-    baseline = with_method_defaults("rl-lock-action", general)
-    assert (baseline.simulations, baseline.max_depth, baseline.max_considered) == (128, 32, 16)
-    given = with_method_defaults("rl-lock-action", MCTSConfig(simulations=64, max_depth=8))
-    assert (given.simulations, given.max_depth) == (64, 8)
-    assert with_method_defaults("rl-lock", general) == general
+def test_each_method_takes_its_own_settings_unless_others_are_given():
+    base = TrainConfig(shape="cube4", pieces=7)
+    action = with_method_defaults(dataclasses.replace(base, method="rl-lock-action"))
+    assert (action.mcts.simulations, action.mcts.max_depth, action.mcts.max_considered) == (128, 32, 16)
+    given = with_method_defaults(
+        dataclasses.replace(base, method="rl-lock-action", mcts=MCTSConfig(simulations=64, max_depth=8))
+    )
+    assert (given.mcts.simulations, given.mcts.max_depth) == (64, 8)
+    ppo = with_method_defaults(dataclasses.replace(base, method="ppo", replay_ratio=2.0))
+    assert (ppo.buffer_capacity, ppo.replay_ratio, ppo.max_policy_lag) == (2048, 2.0, 1)
+    assert with_method_defaults(base) == base
