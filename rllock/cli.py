@@ -372,6 +372,39 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_ablation(args: argparse.Namespace) -> int:
+    from rllock.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
+    from rllock.config import METHODS
+
+    tasks = parse_ablation_tasks(args.tasks)
+    root = Path(args.runs)
+    if not root.is_dir():
+        raise RLLockError(f"--runs {root}: no such folder (it holds METHOD/TASK training runs)")
+    cells = []
+    for task in tqdm(tasks, desc="bench ablation", unit="task"):
+        for method in METHODS:
+            cells.append(
+                ablation_cell(
+                    root,
+                    method,
+                    task,
+                    count=args.count,
+                    batch=args.batch,
+                    time_limit=args.time_limit,
+                    seed=args.seed,
+                )
+            )
+    table = format_ablation_table(cells, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
+    if args.out:
+        Path(args.out).write_text(table)
+    if args.json:
+        rows = [{**asdict(c), "minutes_per_valid": c.minutes_per_valid} for c in cells]
+        sys.stdout.write(json.dumps(rows) + "\n")
+    else:
+        sys.stdout.write(table)
+    return 0
+
+
 def cmd_pretrained(args: argparse.Namespace) -> int:
     from rllock import pretrained
     from rllock.checkpoint import shipped_names
@@ -569,6 +602,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON list")
     p.add_argument("--out", default=None, help="also write the markdown table to this file")
     p.set_defaults(func=cmd_bench_paper)
+
+    p = bench.add_parser(
+        "ablation", help="the paper's Table 1: the three methods' training and inference times, from runs"
+    )
+    p.add_argument(
+        "--runs",
+        default="runs/ablation",
+        help="folder of training runs named METHOD/TASK (default runs/ablation)",
+    )
+    p.add_argument("--tasks", default=None, help="default: cube4-k7,cube4-k8,cube4-k9,cube5-k13")
+    p.add_argument("--count", type=int, default=5, help="valid assemblies to find per run")
+    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
+    p.add_argument("--time-limit", type=_positive_float, default=300.0, help="seconds per run")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON list")
+    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    p.set_defaults(func=cmd_bench_ablation)
 
     p = bench.add_parser("learning", help="a checkpoint against the same search with an untrained network")
     _add_checkpoint_args(p)

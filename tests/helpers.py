@@ -42,6 +42,27 @@ def untrained_episodes(space, mcts, batch: int, seed: int) -> tuple[Task, list]:
     return task, searcher.play(params, task, jax.random.PRNGKey(1), seed=seed)
 
 
+def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock", step: int = 7,
+             seconds: float = 600.0, validation: dict | None = None):  # fmt: skip
+    """A training run folder with one best checkpoint of a fresh learner, as `rllock train` writes it
+    (params, optimizer state, provenance); returns the learner."""
+    import jax
+
+    from learner.learner import Learner, LearnerConfig
+    from rllock import checkpoint as ckpt
+    from rllock.config import to_json
+
+    task = make_task(shape, pieces)
+    learner = Learner(task, net, LearnerConfig(), jax.random.PRNGKey(3), method)
+    config = TrainConfig(shape=shape, pieces=pieces, method=method, net=net, mcts=mcts)
+    mngr = ckpt.manager(run / "best", keep=1)
+    counters = {"seconds": seconds, "episodes": 40}
+    ckpt.save(mngr, step, learner.state(), ckpt.meta(to_json(config), task, step, validation, counters,
+                                                     [ckpt.provenance()]))  # fmt: skip
+    mngr.close()
+    return learner
+
+
 def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:
     """The checks (fast.CONNECTED | REMOVABLE | INTERLOCKING) that the reference checkers pass on the
     newest part parts[-1] and the remaining volume `rest`."""

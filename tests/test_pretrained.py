@@ -9,13 +9,10 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from helpers import run_cli
+from helpers import run_cli, save_run
 
-from learner.learner import Learner, LearnerConfig
 from rllock import checkpoint as ckpt
 from rllock import pretrained
-from rllock.config import TrainConfig, to_json
-from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.inference import load_policy
 from rllock.mcts import MCTSConfig
@@ -28,15 +25,8 @@ MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8
 @pytest.fixture()
 def run(tmp_path):
     """A run directory with one checkpoint (params, optimizer state, provenance), and its learner."""
-    task = make_task("box:4x4x2", 4)
-    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(3))
-    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
-    mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
-    counters = {"seconds": 600.0, "episodes": 40}
     validation = {"success_rate": 0.25, "episodes": 8}
-    meta = ckpt.meta(to_json(config), task, 7, validation, counters, [ckpt.provenance()])
-    ckpt.save(mngr, 7, learner.state(), meta)
-    mngr.close()
+    learner = save_run(tmp_path / "run", "box:4x4x2", 4, net=NET, mcts=MCTS, validation=validation)
     return tmp_path / "run", learner
 
 
