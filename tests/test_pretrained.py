@@ -17,6 +17,7 @@ from rllock.errors import RLLockError
 from rllock.inference import load_policy
 from rllock.mcts import MCTSConfig
 from rllock.network import NetConfig
+from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -74,20 +75,23 @@ def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
     assert [r["name"] for r in json.loads(out)] == names
 
 
-def test_bench_paper_runs_the_three_arms_and_writes_the_table(tmp_path):
-    table = tmp_path / "table.md"
-    code, out, err = run_cli(
-        "bench", "paper", "--tasks", "cube4-k7", "--count", "1", "--batch", "4", "--time-limit", "5",
-        "--json", "--out", str(table),
-    )  # fmt: skip
-    assert code == 0, err
-    (row,) = json.loads(out)
-    assert row["task"] == "cube4-k7" and row["pieces"] == 7 and row["paper_rllock_s"] == 0.05 * 60
-    assert (row["checkpoint"] is None) == ("cube4-k7" not in ckpt.shipped_names())
-    assert row["solver"]["valid"] == 1  # the solver finds a 4^3 K=7 assembly in well under 5 s
-    assert row["untrained"]["episodes"] >= 4 and row["untrained"]["seconds"] > 0
-    lines = table.read_text().splitlines()
-    assert lines[0].strip().startswith("rllock bench paper --tasks cube4-k7")
+def test_bench_paper_runs_the_three_arms_beside_the_papers_figures(tmp_path, monkeypatch):
+    fast = MCTSConfig(simulations=2, max_considered=2, raw_samples=128, candidates=4)
+    save_run(tmp_path / "run", "cube4", 7, net=NET, mcts=fast, step=11)
+    monkeypatch.setattr(ckpt, "SHIPPED", tmp_path / "shipped")
+    pretrained.ship(tmp_path / "run", "cube4-k7")
+    (task,) = parse_paper_tasks("cube4-k7")
+    row = bench_paper_task(task, count=1, batch=2, time_limit=1, seed=0)
+    assert row.checkpoint == "cube4-k7" and row.step == 11
+    assert row.trained.episodes >= 2 and row.untrained.episodes >= 2
+    assert row.solver.valid == 1  # the solver finds a 4^3 K=7 assembly in well under a second
+    doc = row_json(row)
+    assert doc["paper_rllock_s"] == 0.05 * 60 and doc["solver"]["time_per_valid_s"] == row.solver.seconds
+    lines = format_paper_table([row], 1, "rllock bench paper --tasks cube4-k7").splitlines()
+    assert lines[0].strip() == "rllock bench paper --tasks cube4-k7"
     assert any(line.startswith("| cube4-k7 | ") and line.endswith("| 3.0 | 0.6 |") for line in lines)
+
+
+def test_bench_paper_refuses_an_unknown_task():
     code, _, err = run_cli("bench", "paper", "--tasks", "cube4-k6")
     assert code == 2 and "unknown task 'cube4-k6'" in err and len(err.strip().splitlines()) == 1
