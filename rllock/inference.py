@@ -164,7 +164,8 @@ class Collector:
                         "checkpoint": self.policy.source,
                         "step": self.policy.step,
                         "batch": self.batch,
-                        **asdict(self.policy.mcts),
+                        # PPO samples from the policy at temperature 1: it has no search settings.
+                        **({"temperature": 1.0} if self.policy.method == "ppo" else asdict(self.policy.mcts)),
                     },
                     seed=self.seed,
                     timings={"batch_seconds": round(batch_seconds, 3)},
