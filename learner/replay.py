@@ -48,7 +48,7 @@ class ReplayBuffer:
             self.num_valid[i] = episode.num_valid[t]
             self.pi[i] = episode.pi[t]
             self.z[i] = episode.z[t]
-            self.actions[i] = 0 if episode.actions is None else episode.actions[t]
+            self.actions[i] = episode.actions[t]
             self.success[i] = episode.success
             self.cursor = (i + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)

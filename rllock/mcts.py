@@ -16,7 +16,7 @@ untrained network then tells a live child from a dead end one level earlier.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -159,8 +159,9 @@ class NodeStore:
         planes, chunks, valid = self.features(kids)
         return kids, reward, discount, floor, cap, planes, chunks, valid
 
-    def episode(self, steps: list[tuple[int, np.ndarray]], last: int) -> Episode:
-        """The episode that took the decisions `steps` ((node, search policy) each) and ended at `last`."""
+    def episode(self, steps: list[tuple[int, np.ndarray, int]], last: int) -> Episode:
+        """The episode that took the decisions `steps` ((node, policy over its candidates, candidate
+        taken) each) and ended at `last`."""
         task = self.task
         t = len(steps)
         label_dtype, voxel_dtype = compact_dtypes(task)
@@ -170,7 +171,8 @@ class NodeStore:
         chunks = np.zeros((t, self.m, self.n), voxel_dtype)
         num_valid = np.zeros(t, np.int16)
         pi = np.zeros((t, self.m), np.float32)
-        for s, (node, weights) in enumerate(steps):
+        actions = np.zeros(t, np.int16)
+        for s, (node, weights, action) in enumerate(steps):
             state, cands = self.states[node], self.cands[node]
             labels[s] = state.labels
             placed[s] = state.placed
@@ -178,10 +180,13 @@ class NodeStore:
             chunks[s, : len(cands)] = cands
             num_valid[s] = len(cands)
             pi[s] = weights
+            actions[s] = action
         final = self.states[last]
         # Only accepted pieces are rewarded (1/K each), so z_s = (placed at the end - placed at s) / K.
         z = ((final.placed - placed) / task.pieces).astype(np.float32)
-        return Episode(labels, encoded, chunks, num_valid, pi, z, final.placed == task.pieces - 1, final)
+        return Episode(
+            labels, encoded, chunks, num_valid, pi, z, final.placed == task.pieces - 1, final, actions
+        )
 
 
 class ChunkStore(NodeStore):
@@ -307,22 +312,13 @@ class Searcher:
     ) -> list[Episode]:
         """`batch` episodes in lockstep from the empty state; each decision takes the search's
         action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
-        batch = self.batch
         store = self.space(task, self.config, self.canvas, seed, parallel)
-        roots = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
-        trace: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(batch)]
-        active = np.array([not store.terminal(r) for r in roots])
-        while active.any():
-            key, sub = jax.random.split(key)
-            actions, weights, _ = self.search(params, sub, store, roots)
-            rows = np.flatnonzero(active)
-            for b in rows:
-                trace[b].append((int(roots[b]), weights[b]))
-            roots[rows] = store.children_of([(int(roots[b]), int(actions[b])) for b in rows])
-            active[rows] = [not store.terminal(int(roots[b])) for b in rows]
-        if times is not None:
-            times.add(store.times)
-        return [store.episode(trace[b], int(roots[b])) for b in range(batch)]
+
+        def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            actions, weights, _ = self.search(params, sub, store, nodes)
+            return actions, weights
+
+        return play_lockstep(store, self.batch, decide, key, times)
 
     def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
         """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
@@ -353,7 +349,32 @@ class Episode:
     z: np.ndarray  # float32[T]: cumulative reward from each state to the end
     success: bool
     final: Any  # the last state reached (env.State, or voxel_env.VoxelState for voxel actions)
-    actions: np.ndarray | None = None  # int16[T]: the candidate taken, for on-policy learning (PPO)
+    actions: np.ndarray  # int16[T]: the candidate taken (what PPO learns from)
+
+
+def play_lockstep(
+    store: NodeStore,
+    batch: int,
+    decide: Callable[[jax.Array, np.ndarray], tuple[np.ndarray, np.ndarray]],
+    key: jax.Array,
+    times: TimeSplit | None,
+) -> list[Episode]:
+    """`batch` episodes in lockstep from the store's initial state: `decide(key, nodes)` gives every
+    row's action and its policy over the node's candidates (rows that have ended are ignored)."""
+    nodes = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
+    trace: list[list[tuple[int, np.ndarray, int]]] = [[] for _ in range(batch)]
+    active = np.array([not store.terminal(n) for n in nodes])
+    while active.any():
+        key, sub = jax.random.split(key)
+        actions, weights = decide(sub, nodes)
+        rows = np.flatnonzero(active)
+        for b in rows:
+            trace[b].append((int(nodes[b]), weights[b], int(actions[b])))
+        nodes[rows] = store.children_of([(int(nodes[b]), int(actions[b])) for b in rows])
+        active[rows] = [not store.terminal(int(nodes[b])) for b in rows]
+    if times is not None:
+        times.add(store.times)
+    return [store.episode(trace[b], int(nodes[b])) for b in range(batch)]
 
 
 class Player(Protocol):

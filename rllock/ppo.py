@@ -15,7 +15,6 @@ and value head, trained with PPO's clipped objective.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import jax
@@ -24,7 +23,7 @@ import numpy as np
 
 from rllock.config import MCTSConfig
 from rllock.env import Task
-from rllock.mcts import Episode, TimeSplit
+from rllock.mcts import Episode, TimeSplit, play_lockstep
 from rllock.network import PolicyValueNet, chunk_logits
 from rllock.voxel_search import VoxelStore
 
@@ -89,27 +88,13 @@ class PolicyPlayer:
         """`batch` episodes from the empty state, each action drawn from the masked policy."""
         del parallel  # the legal masks are cheap: no threads needed
         store = VoxelStore(task, self.config, self.canvas, seed)
-        nodes = np.array(store.add_many([store.initial() for _ in range(self.batch)]), np.int32)
-        trace: list[list[tuple[int, np.ndarray, int]]] = [[] for _ in range(self.batch)]
-        active = np.array([not store.terminal(n) for n in nodes])
-        while active.any():
-            key, sub = jax.random.split(key)
+
+        def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             planes, chunks, valid = store.features(nodes)
             valid[~valid.any(axis=1), 0] = True  # finished rows still run: keep them finite
             start = time.perf_counter()
-            actions, probs = self._policy(params, sub, planes, chunks, valid)
-            actions, probs = np.asarray(actions), np.asarray(probs)
+            actions, probs = (np.asarray(a) for a in self._policy(params, sub, planes, chunks, valid))
             store.times.network += time.perf_counter() - start
-            rows = np.flatnonzero(active)
-            for b in rows:
-                trace[b].append((int(nodes[b]), probs[b], int(actions[b])))
-            nodes[rows] = store.children_of([(int(nodes[b]), int(actions[b])) for b in rows])
-            active[rows] = [not store.terminal(int(nodes[b])) for b in rows]
-        if times is not None:
-            times.add(store.times)
-        episodes = []
-        for b in range(self.batch):
-            episode = store.episode([(node, probs) for node, probs, _ in trace[b]], int(nodes[b]))
-            taken = np.array([a for _, _, a in trace[b]], np.int16)
-            episodes.append(dataclasses.replace(episode, actions=taken))
-        return episodes
+            return actions, probs
+
+        return play_lockstep(store, self.batch, decide, key, times)

@@ -110,6 +110,7 @@ def _episode(success: bool, length: int, n_vox: int = 8, m: int = 2, n: int = 2)
         z=np.zeros(length, np.float32),
         success=success,
         final=State(np.zeros(n_vox, np.int16), length),
+        actions=np.zeros(length, np.int16),
     )
 
 
