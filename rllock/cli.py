@@ -348,13 +348,26 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
     return 0
 
 
+def _table_out(args: argparse.Namespace) -> Path | None:
+    """The --out file of a table bench, checked before the bench runs so that its results are not lost."""
+    out = Path(args.out) if args.out else None
+    if out is not None and out.parent and not out.parent.is_dir():
+        raise RLLockError(f"--out {out}: no such folder {out.parent}")
+    return out
+
+
+def _emit_table(args: argparse.Namespace, out: Path | None, table: str, rows: list[dict]) -> None:
+    """A table bench's results: the rows as JSON (--json) or the markdown table, and the table in --out."""
+    sys.stdout.write(json.dumps(rows) + "\n" if args.json else table)
+    if out is not None:
+        out.write_text(table)
+
+
 def cmd_bench_paper(args: argparse.Namespace) -> int:
     from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
 
     tasks = parse_paper_tasks(args.tasks)
-    out = Path(args.out) if args.out else None
-    if out is not None and out.parent and not out.parent.is_dir():
-        raise RLLockError(f"--out {out}: no such folder {out.parent}")
+    out = _table_out(args)
     rows = []
     for task in tqdm(tasks, desc="bench paper", unit="task"):
         rows.append(
@@ -363,12 +376,7 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
             )
         )
     table = format_paper_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
-    if out is not None:
-        out.write_text(table)
-    if args.json:
-        sys.stdout.write(json.dumps([row_json(r) for r in rows]) + "\n")
-    else:
-        sys.stdout.write(table)
+    _emit_table(args, out, table, [row_json(r) for r in rows])
     return 0
 
 
@@ -380,6 +388,7 @@ def cmd_bench_ablation(args: argparse.Namespace) -> int:
     root = Path(args.runs)
     if not root.is_dir():
         raise RLLockError(f"--runs {root}: no such folder (it holds METHOD/TASK training runs)")
+    out = _table_out(args)
     cells = []
     for task in tqdm(tasks, desc="bench ablation", unit="task"):
         for method in METHODS:
@@ -395,13 +404,7 @@ def cmd_bench_ablation(args: argparse.Namespace) -> int:
                 )
             )
     table = format_ablation_table(cells, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
-    if args.out:
-        Path(args.out).write_text(table)
-    if args.json:
-        rows = [{**asdict(c), "minutes_per_valid": c.minutes_per_valid} for c in cells]
-        sys.stdout.write(json.dumps(rows) + "\n")
-    else:
-        sys.stdout.write(table)
+    _emit_table(args, out, table, [{**asdict(c), "minutes_per_valid": c.minutes_per_valid} for c in cells])
     return 0
 
 
@@ -519,6 +522,16 @@ def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
 
 
+def _add_table_bench_args(p: argparse.ArgumentParser, unit: str) -> None:
+    """The paper's protocol per `unit` (arm or run) and the table's outputs, for bench paper and ablation."""
+    p.add_argument("--count", type=int, default=5, help=f"valid assemblies to find per {unit}")
+    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
+    p.add_argument("--time-limit", type=_positive_float, default=300.0, help=f"seconds per {unit}")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON list")
+    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rllock", description="Interlocking assemblies from voxel shapes.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -595,12 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--tasks", default=None, help="comma-separated names, e.g. cube4-k9,sofa-k19 (default: all)"
     )
-    p.add_argument("--count", type=int, default=5, help="valid assemblies to find per arm")
-    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
-    p.add_argument("--time-limit", type=_positive_float, default=300.0, help="seconds per arm")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", action="store_true", help="print one JSON list")
-    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    _add_table_bench_args(p, "arm")
     p.set_defaults(func=cmd_bench_paper)
 
     p = bench.add_parser(
@@ -612,12 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="folder of training runs named METHOD/TASK (default runs/ablation)",
     )
     p.add_argument("--tasks", default=None, help="default: cube4-k7,cube4-k8,cube4-k9,cube5-k13")
-    p.add_argument("--count", type=int, default=5, help="valid assemblies to find per run")
-    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
-    p.add_argument("--time-limit", type=_positive_float, default=300.0, help="seconds per run")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", action="store_true", help="print one JSON list")
-    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    _add_table_bench_args(p, "run")
     p.set_defaults(func=cmd_bench_ablation)
 
     p = bench.add_parser("learning", help="a checkpoint against the same search with an untrained network")
