@@ -19,10 +19,12 @@ import jax
 import numpy as np
 import ray
 
+from rllock.canvas import canvas_episode
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import Task, make_task, peak_rss_mb
 from rllock.mcts import Episode, Player, TimeSplit, derive_seed, play_groups
-from rllock.methods import players
+from rllock.methods import players, space
+from rllock.tasks import TaskSet
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -59,9 +61,11 @@ class TaskSpec:
 @dataclass(frozen=True)
 class PlaySpec:
     """What a self-play worker plays: `episodes` episodes of the task per batch, in `groups` lockstep
-    groups, with this network and search; `method` (`rllock.config.METHODS`) says what an action is."""
+    groups, with this network and search; `method` (`rllock.config.METHODS`) says what an action is.
+    With a `TaskSet`, each batch draws its task, and the episodes come as canvas states
+    (`rllock.canvas`)."""
 
-    task: TaskSpec
+    task: TaskSpec | TaskSet
     net: NetConfig
     mcts: MCTSConfig
     method: str
@@ -80,6 +84,8 @@ class PlayStats:
     peak_rss_mb: float
     seconds: float
     times: TimeSplit
+    group: int = -1  # multi-task runs: the task group the batch drew
+    pieces: int = 0  # the batch's K
 
 
 def evaluate(
@@ -101,10 +107,14 @@ class SelfPlayWorker:
     """Plays batches as `spec` says, with the weights it was last given."""
 
     def __init__(self, spec: PlaySpec, seed: int):
-        self.task = spec.task.make()
+        self.spec = spec
+        self.tasks = spec.task if isinstance(spec.task, TaskSet) else None
+        self.task = spec.task.make() if isinstance(spec.task, TaskSpec) else None
         # PPO runs no search: its decisions cost one network call each, not simulations.
         self.simulations_per_decision = 0 if spec.method == "ppo" else spec.mcts.simulations
-        self.searchers = players(spec.method, spec.net, spec.mcts, self.task, spec.episodes, spec.groups)
+        # Compiled searches by action shape (M, n): a multi-task run meets a few piece sizes again and
+        # again, and compiling costs seconds.
+        self.compiled: dict[tuple[int, int], list[Player]] = {}
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params = None
@@ -114,18 +124,26 @@ class SelfPlayWorker:
     def set_weights(self, params, version: int) -> None:
         self.params, self.version = params, version
 
+    def searchers(self, task: Task) -> list[Player]:
+        spec = self.spec
+        shape = space(spec.method).action_shape(task, spec.mcts)
+        if shape not in self.compiled:
+            self.compiled[shape] = players(spec.method, spec.net, spec.mcts, task, spec.episodes, spec.groups)
+        return self.compiled[shape]
+
     def play(self) -> tuple[list[Episode], PlayStats]:
         assert self.params is not None, "set_weights first"
         self.key, sub = jax.random.split(self.key)
         times = TimeSplit()
-        episodes, seconds = evaluate(
-            self.searchers,
-            self.params,
-            self.task,
-            sub,
-            seed=derive_seed(self.seed, self.batches),
-            times=times,
-        )
+        seed = derive_seed(self.seed, self.batches)
+        group, task = -1, self.task
+        if self.tasks is not None:
+            group, task = self.tasks.draw(np.random.default_rng([seed, 7]))  # not the store's stream
+        assert task is not None
+        episodes, seconds = evaluate(self.searchers(task), self.params, task, sub, seed=seed, times=times)
+        if self.tasks is not None:
+            canvas, n_max = self.tasks.canvas, self.tasks.max_piece_size()
+            episodes = [canvas_episode(task, e, canvas, n_max) for e in episodes]
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(
@@ -138,6 +156,8 @@ class SelfPlayWorker:
             peak_rss_mb(),
             seconds,
             times,
+            group,
+            task.pieces,
         )
         return episodes, stats
 
@@ -158,5 +178,5 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(self.buffer.add_many.remote(episodes))  # waits: bounded in-flight data
+        ray.get(self.buffer.add_many.remote(episodes, stats.pieces))  # waits: bounded in-flight data
         return stats

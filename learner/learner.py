@@ -9,9 +9,18 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from rllock.canvas import augment_canvas
 from rllock.config import LearnerConfig
 from rllock.env import Task
-from rllock.network import NetConfig, PolicyValueNet, canvas_index, chunk_logits, encode_batch, init_params
+from rllock.network import (
+    NetConfig,
+    PolicyValueNet,
+    canvas_index,
+    chunk_logits,
+    encode_batch,
+    encode_canvas,
+    init_params,
+)
 from rllock.ppo import ppo_loss
 from rllock.topology import symmetries
 
@@ -65,14 +74,15 @@ def augment(sample: dict[str, np.ndarray], perms: np.ndarray, seed: int) -> dict
 class Learner:
     def __init__(
         self,
-        task: Task,
+        task: Task | None,
         net_config: NetConfig,
         config: LearnerConfig,
         key: jax.Array,
         method: str = "rl-lock",
     ):
         """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is.
-        `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error."""
+        `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error.
+        `task` None: a multi-task run, whose samples are canvas states (`rllock.canvas`)."""
         self.task = task
         self.ppo = method == "ppo"
         self.net = PolicyValueNet(net_config)
@@ -83,18 +93,27 @@ class Learner:
         self.params = init_params(net_config, init_key)
         self.opt_state = self.optimizer.init(self.params)
         self.step = 0
-        self._canvas_idx = canvas_index(task, net_config.canvas)
-        self._symmetries = symmetries(task.topology) if config.symmetries else None
+        if task is not None:
+            self._canvas_idx = canvas_index(task, net_config.canvas)
+            self._symmetries = symmetries(task.topology) if config.symmetries else None
 
     def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
         """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z; for PPO
         pi, actions, z). With a `seed` (and symmetries on), each transition is first mapped through a
         random symmetry."""
-        if seed is not None and self._symmetries is not None:
-            sample = augment(sample, self._symmetries, seed)
+        canvas, task_planes = self.net_config.canvas, self.net_config.task_planes
+        assert canvas is not None
+        if self.task is None:
+            if seed is not None and self.config.symmetries:
+                sample = augment_canvas(sample, canvas, seed)
+            planes = encode_canvas(sample["labels"], sample["placed"], sample["pieces"], canvas, task_planes)
+            chunks = sample["chunks"].astype(np.int32)
+        else:
+            if seed is not None and self._symmetries is not None:
+                sample = augment(sample, self._symmetries, seed)
+            planes = encode_batch(self.task, sample["labels"], sample["placed"], canvas, task_planes)
+            chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
         m = sample["chunks"].shape[1]
-        planes = encode_batch(self.task, sample["labels"], sample["placed"], self.net_config.canvas)
-        chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
         valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
         if self.ppo:
             return planes, chunks, valid, sample["pi"], sample["actions"].astype(np.int32), sample["z"]
@@ -112,6 +131,12 @@ class Learner:
             )
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
+
+    def start_from(self, params) -> None:
+        """Fine-tuning: these parameters (another run's network of the same architecture), with a fresh
+        optimizer."""
+        self.params = params
+        self.opt_state = self.optimizer.init(params)
 
     def next_seed(self) -> int:
         """A seed for the next replay sample, from the learner's PRNG key (saved with checkpoints, so a

@@ -35,11 +35,14 @@ class ReplayBuffer:
         self.z = np.zeros(capacity, np.float32)
         self.actions = np.zeros(capacity, np.int16)  # the candidate taken (on-policy methods only)
         self.success = np.zeros(capacity, bool)  # the transition's episode succeeded
+        self.pieces = np.zeros(capacity, np.int16)  # K of the transition's task (multi-task runs)
         self.size = 0
         self.cursor = 0
         self.added = 0  # transitions ever added
 
-    def add(self, episode: Episode) -> None:
+    def add(self, episode: Episode, pieces: int = 0) -> None:
+        """`pieces`: the episode's K, stored for multi-task runs (whose buffer holds canvas states,
+        `rllock.canvas`)."""
         for t in range(len(episode.z)):
             i = self.cursor
             self.labels[i] = episode.labels[t]
@@ -50,13 +53,14 @@ class ReplayBuffer:
             self.z[i] = episode.z[t]
             self.actions[i] = episode.actions[t]
             self.success[i] = episode.success
+            self.pieces[i] = pieces
             self.cursor = (i + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)
             self.added += 1
 
-    def add_many(self, episodes: list[Episode]) -> None:
+    def add_many(self, episodes: list[Episode], pieces: int = 0) -> None:
         for episode in episodes:
-            self.add(episode)
+            self.add(episode, pieces)
 
     def sample(self, batch: int, seed: int, success_fraction: float = 0.0) -> dict[str, np.ndarray]:
         """`batch` transitions drawn uniformly, except that round(success_fraction * batch) of them come
@@ -75,12 +79,13 @@ class ReplayBuffer:
             "pi": self.pi[idx],
             "z": self.z[idx],
             "actions": self.actions[idx],
+            "pieces": self.pieces[idx],
         }
 
     def __len__(self) -> int:
         return self.size
 
-    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z", "actions", "success")
+    _ARRAYS = ("labels", "placed", "chunks", "num_valid", "pi", "z", "actions", "success", "pieces")
 
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""

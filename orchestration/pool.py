@@ -13,6 +13,7 @@ from ray.exceptions import GetTimeoutError, RayActorError
 from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, TaskSpec, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.errors import RLLockError
+from rllock.tasks import TaskSet
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,7 @@ class ActorPool:
 
     def __init__(
         self,
-        spec: TaskSpec,
+        spec: TaskSpec | TaskSet,
         net: NetConfig,
         mcts: MCTSConfig,
         method: str,

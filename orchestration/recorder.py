@@ -58,9 +58,16 @@ def best_rank(logdir: Path) -> tuple[float, float]:
 
 class Recorder:
     def __init__(
-        self, logdir: Path, config: TrainConfig, task: Task, step: int, resume: bool, sessions: list[dict]
+        self,
+        logdir: Path,
+        config: TrainConfig,
+        task: Task | dict,
+        step: int,
+        resume: bool,
+        sessions: list[dict],
     ):
-        """`sessions`: the provenance of the processes that trained this run before (when resumed)."""
+        """`task`: the run's task, or a multi-task run's identity (`rllock.checkpoint.meta`); `sessions`:
+        the provenance of the processes that trained this run before (when resumed)."""
         self.logdir, self.config, self.task = logdir, config, task
         self.sessions = [*sessions, ckpt.provenance()]
         logdir.mkdir(parents=True, exist_ok=True)
@@ -83,26 +90,32 @@ class Recorder:
         )
 
     def best_checkpoint(
-        self, step: int, state, validation: dict, counters: Counters, grid: np.ndarray | None
+        self,
+        step: int,
+        state,
+        validation: dict,
+        counters: Counters,
+        assembly: tuple[Task, np.ndarray] | None,
     ) -> None:
+        """`assembly`: a valid assembly of the validation (its task and labels grid) to keep beside it."""
         ckpt.save(
             self.best,
             step,
             state,
             ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters), self.sessions),
         )
-        if grid is not None:
-            self._best_assembly(grid, step)
+        if assembly is not None:
+            self._best_assembly(*assembly, step)
 
-    def _best_assembly(self, grid: np.ndarray, step: int) -> None:
+    def _best_assembly(self, task: Task, grid: np.ndarray, step: int) -> None:
         folder = self.logdir / "best_assembly"
         png = folder / "assembly.png"
         png.unlink(missing_ok=True)  # never leave the previous best's picture beside the new assembly
         write_assembly(
             folder,
             grid,
-            removal=self.task.removal,
-            shape=self.task.shape_name,
+            removal=task.removal,
+            shape=task.shape_name,
             method={"name": "rl-lock validation", "step": step},
             seed=self.config.seed,
             timings={},

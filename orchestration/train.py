@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import signal
 import time
 from pathlib import Path
@@ -42,8 +43,10 @@ from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig
 from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
 from rllock.errors import RLLockError
+from rllock.inference import load_network
 from rllock.methods import players, space, with_method_defaults
 from rllock.network import fit_canvas
+from rllock.tasks import TaskSet, parse_tasks
 
 log = logging.getLogger(__name__)
 
@@ -62,17 +65,33 @@ def _restore_latest(logdir: Path, learner: Learner) -> dict:
     raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
 
 
+def _setup(config: TrainConfig) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, dict | None]:
+    """(the config with a concrete network, the task or the task set, what the run is for, and the
+    parameters to start from when --init names a checkpoint)."""
+    init = None
+    net = config.net
+    if config.init is not None:
+        _, _, net, _, init = load_network(config.init)
+    if config.tasks is not None:
+        tasks = parse_tasks(config.tasks, canvas=net.canvas, removal=config.removal, step=net.levels_step())
+        net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)
+        return dataclasses.replace(config, net=net), None, tasks, tasks.identity(), init
+    assert config.shape is not None and config.pieces is not None
+    task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
+    net = fit_canvas(task, net)
+    return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas), init
+
+
 def train(config: TrainConfig, *, resume: bool = False) -> dict:
     began = time.monotonic()
     config.validate()
-    task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    config = dataclasses.replace(with_method_defaults(config), net=fit_canvas(task, config.net))
+    config, task, tasks, identity, init = _setup(with_method_defaults(config))
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
     counters, last_score, sessions = Counters(), None, []
     if resume:
         meta = _restore_latest(logdir, learner)
-        ckpt.check_same_task(meta["task"], ckpt.task_identity(task, config.net.canvas), logdir)
+        ckpt.check_same_task(meta["task"], identity, logdir)
         counters = Counters(**meta.get("counters", {}))
         # The best checkpoint may be newer than the latest readable one: its own score is the bar.
         counters.best_rate, counters.best_return = max(
@@ -88,9 +107,12 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
             f"{logdir} already holds a training run; resume it with --resume {logdir} "
             f"or choose another --logdir"
         )
-    recorder = Recorder(logdir, config, task, learner.step, resume, sessions)
+    elif init is not None:
+        learner.start_from(init)
+        log.info("starting from the network of %s", config.init)
+    recorder = Recorder(logdir, config, task or identity, learner.step, resume, sessions)
     started_ray = start_ray(config.address)
-    run = _Run(config, task, learner, recorder, counters, last_score, began)
+    run = _Run(config, task, tasks, learner, recorder, counters, last_score, began)
     previous = signal.signal(signal.SIGINT, run.request_stop)
     try:
         return run.loop(resume)
@@ -114,21 +136,33 @@ class _Run:
     def __init__(
         self,
         config: TrainConfig,
-        task: Task,
+        task: Task | None,
+        tasks: TaskSet | None,
         learner: Learner,
         recorder: Recorder,
         counters: Counters,
         last_score: dict | None,
         began: float,
     ):
-        self.config, self.task, self.learner, self.recorder = config, task, learner, recorder
+        self.config, self.task, self.tasks, self.learner, self.recorder = (
+            config,
+            task,
+            tasks,
+            learner,
+            recorder,
+        )
         self.counters, self.last_score = counters, last_score
         self.pacing = Pacing.of(config)
         self.began = began
         self.schedule = Schedule.start(began, config)
-        # Validation runs in this process beside the learner: one lockstep group.
+        # Validation runs in this process beside the learner, one lockstep group per task: the run's
+        # task, or one fixed task per group of a multi-task run.
         self.space = space(config.method)
-        self.searchers = players(config.method, config.net, config.mcts, task, config.validation_episodes, 1)
+        self.validation_tasks = [task] if tasks is None else tasks.validation_tasks(config.seed + 7)
+        self.searchers = [
+            players(config.method, config.net, config.mcts, t, config.validation_episodes, 1)
+            for t in self.validation_tasks
+        ]
         self.interrupted = False
         self.lag = 0
         # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
@@ -146,12 +180,14 @@ class _Run:
 
     def loop(self, resume: bool) -> dict:
         config, c, learner = self.config, self.counters, self.learner
-        self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
-            config.buffer_capacity,
-            self.task.size,
-            *self.space.action_shape(self.task, config.mcts),
-            *compact_dtypes(self.task),
-        )
+        if self.tasks is None:
+            assert self.task is not None
+            shape = (self.task.size, *self.space.action_shape(self.task, config.mcts))
+            dtypes = compact_dtypes(self.task)
+        else:  # canvas states (rllock.canvas)
+            shape = (self.tasks.canvas**3, config.mcts.candidates, self.tasks.max_piece_size())
+            dtypes = (np.int8, np.int16)
+        self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(config.buffer_capacity, *shape, *dtypes)
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
             try:
@@ -169,7 +205,7 @@ class _Run:
             node_cpus=largest_node_cpus(),
         )
         pool = ActorPool(
-            TaskSpec.of(self.task),
+            TaskSpec.of(self.task) if self.tasks is None else self.tasks,
             config.net,
             config.mcts,
             config.method,
@@ -178,10 +214,8 @@ class _Run:
             self.buffer,
         )
         log.info(
-            "training %s K=%d: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; "
-            "logs in %s",
-            self.task.shape_name,
-            self.task.pieces,
+            "training %s: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; logs in %s",
+            f"{self.task.shape_name} K={self.task.pieces}" if self.task else f"tasks {self.tasks.spec}",
             layout.actors,
             layout.mode,
             layout.episodes,
@@ -322,7 +356,7 @@ class _Run:
             self.batch_seconds,
             self.layout.episodes,
             self.layout.groups,
-            self.config.validation_episodes,
+            self.config.validation_episodes * len(self.validation_tasks),
             self.validation_seconds,
         )
 
@@ -339,21 +373,46 @@ class _Run:
         self._validate()
 
     def _validate(self) -> None:
-        c, step, task = self.counters, self.learner.step, self.task
+        c, step = self.counters, self.learner.step
         seed = self.config.seed + 7
-        episodes, seconds = evaluate(
-            self.searchers, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
-        )
-        self.validation_seconds = seconds
-        wins = [e for e in episodes if e.success]
+        scores, wins = [], []
+        for task, searchers in zip(self.validation_tasks, self.searchers):
+            episodes, seconds = evaluate(
+                searchers, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
+            )
+            won = [e for e in episodes if e.success]
+            wins += [(task, e) for e in won]
+            scores.append(
+                {
+                    "task": f"{task.shape_name} K={task.pieces}",
+                    "success_rate": len(won) / len(episodes),
+                    "valid": len(won),
+                    "episodes": len(episodes),
+                    "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
+                    "seconds": seconds,
+                }
+            )
+        seconds = sum(s["seconds"] for s in scores)
         score = {
-            "success_rate": len(wins) / len(episodes),
+            "success_rate": float(np.mean([s["success_rate"] for s in scores])),
             "valid": len(wins),
-            "episodes": len(episodes),
-            "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
+            "episodes": sum(s["episodes"] for s in scores),
+            "mean_return": float(np.mean([s["mean_return"] for s in scores])),
             "seconds": seconds,
             "time_per_valid_s": seconds / len(wins) if wins else None,
         }
+        if self.tasks is not None:
+            score["groups"] = {group.spec: s for group, s in zip(self.tasks.groups, scores)}
+            for group, s in score["groups"].items():
+                tag = re.sub(r"[^\w.\-]", "_", group)  # TensorBoard's tag characters: cube4_6-9
+                self.recorder.scalars(
+                    {
+                        f"validation/{tag}/success_rate": s["success_rate"],
+                        f"validation/{tag}/mean_return": s["mean_return"],
+                    },
+                    step,
+                )
+        self.validation_seconds = seconds
         self.last_score = score
         self.recorder.scalars(
             {
@@ -374,5 +433,8 @@ class _Run:
         )
         if validation_rank(score) > (c.best_rate, c.best_return) or self.recorder.best.latest_step() is None:
             c.best_rate, c.best_return = max(validation_rank(score), (c.best_rate, c.best_return))
-            grid = task.topology.to_grid(final_labels(task, wins[0].final)) if wins else None
-            self.recorder.best_checkpoint(step, self.learner.state(), score, c, grid)
+            assembly = None
+            if wins:
+                task, episode = wins[0]
+                assembly = (task, task.topology.to_grid(final_labels(task, episode.final)))
+            self.recorder.best_checkpoint(step, self.learner.state(), score, c, assembly)

@@ -68,19 +68,20 @@ def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = 
 
 def meta(
     config: dict,
-    task: Task,
+    task: Task | dict,
     step: int,
     validation: dict | None,
     counters: dict,
     sessions: list[dict] | None = None,
 ) -> dict:
     """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas;
+    `task`: the run's task, or the identity of a multi-task run (`rllock.tasks.TaskSet.identity`);
     `sessions`: the `provenance` of each process that trained the run (one more per resume)."""
     return {
         "format": FORMAT,
         "version": META_VERSION,
         "step": step,
-        "task": task_identity(task, config["net"]["canvas"]),
+        "task": task if isinstance(task, dict) else task_identity(task, config["net"]["canvas"]),
         "config": config,
         "validation": validation,
         "counters": counters,
@@ -158,7 +159,7 @@ def task_from_identity(identity: dict) -> Task:
 
 
 def check_same_task(saved: dict, wanted: dict, where: Path) -> None:
-    for key in ("grid_sha256", "pieces", "removal", "canvas", "checker_version"):
+    for key in ("tasks", "grid_sha256", "pieces", "removal", "canvas", "checker_version"):
         if saved.get(key) != wanted.get(key):
             raise RLLockError(
                 f"checkpoint {where} was made for another task: {key} is {saved.get(key)!r} there, "

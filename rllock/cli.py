@@ -201,9 +201,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         config = run_config(Path(args.resume), minutes=args.minutes, max_learner_steps=args.max_learner_steps)
     else:
-        if args.shape is None or args.pieces is None:
-            raise RLLockError("train needs --shape and --pieces (or --resume LOGDIR)")
         config = from_flags(TrainConfig, args)
+        config.validate()
     _ray_on_loopback_unless(config.address)
     from orchestration.train import train
 
@@ -243,12 +242,23 @@ def _expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
 
 
 def _load_for(args: argparse.Namespace):
+    """The policy for `generate` and `bench learning`: a single-task checkpoint's own task (checked
+    against --shape and --pieces when named), or the named task for a multi-task checkpoint."""
     from rllock.checkpoint import find_step_dir, read_meta
-    from rllock.inference import load_policy
+    from rllock.env import make_task
+    from rllock.inference import is_multitask, load_policy
 
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
     meta = read_meta(find_step_dir(Path(args.checkpoint)))
+    if is_multitask(meta):
+        if args.shape is None or args.pieces is None:
+            raise RLLockError(
+                f"checkpoint {args.checkpoint} serves many tasks: name one with --shape and --pieces"
+            )
+        removal = args.removal or meta["task"]["removal"]
+        task = make_task(args.shape, args.pieces, removal, resolution=args.resolution)
+        return load_policy(args.checkpoint, task=task)
     return load_policy(args.checkpoint, _expected_task(args, meta["task"]))
 
 

@@ -30,6 +30,9 @@ class NetConfig:
     """Channels per U-Net level; each level halves the resolution."""
     value_hidden: int = 64
     """Width of the value head's hidden layer."""
+    task_planes: bool = False
+    """Two more input planes that give the task's piece size n and K (on for multi-task training,
+    --tasks: one network for many tasks)."""
 
     def levels_step(self) -> int:
         """The canvas side must be a multiple of this (each level halves it)."""
@@ -93,10 +96,17 @@ class SelfPlayConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    shape: str
-    """Built-in name or shape file."""
-    pieces: int
-    """K, the number of pieces."""
+    shape: str | None = None
+    """Built-in name or shape file (a single-task run; or --tasks)."""
+    pieces: int | None = None
+    """K, the number of pieces (with --shape)."""
+    tasks: str | None = None
+    """Multi-task training, one network for many tasks: task groups SHAPE:KLO-KHI separated by commas,
+    e.g. cube4:6-9,box:6x5x4:8-12,random:60-200:6-20 (random:NLO-NHI: a fresh random shape of that
+    many voxels per draw; rllock.tasks). Replaces --shape and --pieces."""
+    init: str | None = None
+    """Start from this checkpoint's network (a run's log directory or a shipped name, e.g. general:
+    fine-tuning); its canvas and input planes are used."""
     removal: str = "straight"
     """straight: one axis slide per piece; path: DESIA's multi-move test."""
     method: str = "rl-lock"
@@ -167,7 +177,13 @@ class TrainConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
-        if self.pieces < 2:
+        if self.tasks is not None and (self.shape is not None or self.pieces is not None):
+            raise RLLockError("give either --tasks or --shape and --pieces, not both")
+        if self.tasks is None and (self.shape is None or self.pieces is None):
+            raise RLLockError("train needs --shape and --pieces, or --tasks (or --resume LOGDIR)")
+        if self.tasks is not None and self.method != "rl-lock":
+            raise RLLockError("--tasks trains the rl-lock method only")
+        if self.pieces is not None and self.pieces < 2:
             raise RLLockError(f"--pieces must be at least 2, got {self.pieces}")
         if self.net.value_hidden < 1 or self.mcts.gumbel_scale < 0:
             raise RLLockError("--value-hidden must be at least 1 and --gumbel-scale at least 0")

@@ -22,9 +22,11 @@ from rllock import checkpoint as ckpt
 from rllock.assembly import PictureWriter, write_assembly
 from rllock.config import MCTSConfig, NetConfig, from_json
 from rllock.env import Task, assembly_key, final_labels
+from rllock.errors import RLLockError
 from rllock.mcts import Episode, Player, derive_seed, play_groups
 from rllock.methods import players
 from rllock.network import init_params
+from rllock.verifier import CHECKER_VERSION
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +50,52 @@ def _configs(meta: dict) -> tuple[NetConfig, MCTSConfig]:
     return from_json(NetConfig, meta["net"]), from_json(MCTSConfig, meta["mcts"])  # metadata version 1
 
 
-def load_policy(path: str | Path, expect: dict | None = None) -> Policy:
-    """The policy in a checkpoint (a run's log directory: its best checkpoint). `expect`: a task identity
-    the checkpoint must match. Only the parameters are read, against a template from `jax.eval_shape`."""
+def load_network(path: str | Path) -> tuple[Path, dict, NetConfig, MCTSConfig, dict]:
+    """(step folder, metadata, network config, search config, parameters) of a checkpoint (a run's log
+    directory: its best checkpoint; or a shipped name). Only the parameters are read, against a template
+    from `jax.eval_shape`."""
     step_dir = ckpt.find_step_dir(Path(path))
     meta = ckpt.read_meta(step_dir)
-    if expect is not None:
-        ckpt.check_same_task(meta["task"], expect, step_dir)
-    task = ckpt.task_from_identity(meta["task"])
     net, mcts = _configs(meta)
-    method = meta.get("config", {}).get("method", "rl-lock")
     template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
     params = ckpt.restore_like(step_dir, template, partial=True)["params"]
+    return step_dir, meta, net, mcts, params
+
+
+def is_multitask(meta: dict) -> bool:
+    """Whether a checkpoint's network was trained for many tasks (`rllock train --tasks`)."""
+    return "tasks" in meta["task"]
+
+
+def check_fits(task: Task, saved: dict, where: Path) -> None:
+    """A task a multi-task checkpoint can serve: on its canvas, with its removal mode and checkers."""
+    if max(task.topology.dims) > saved["canvas"]:
+        raise RLLockError(
+            f"shape {task.shape_name} {task.topology.dims} does not fit the {saved['canvas']}^3 canvas of "
+            f"checkpoint {where}"
+        )
+    for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
+        if saved.get(key) != here:
+            raise RLLockError(f"checkpoint {where} was made for {key} {saved.get(key)!r}, not {here!r}")
+
+
+def load_policy(path: str | Path, expect: dict | None = None, *, task: Task | None = None) -> Policy:
+    """The policy in a checkpoint (a run's log directory: its best checkpoint; or a shipped name).
+    A single-task checkpoint plays its own task; `expect`, a task identity, must match it. A multi-task
+    checkpoint plays `task`, which must fit its canvas."""
+    step_dir, meta, net, mcts, params = load_network(path)
+    method = meta.get("config", {}).get("method", "rl-lock")
+    if is_multitask(meta):
+        if task is None:
+            raise RLLockError(
+                f"checkpoint {step_dir} serves many tasks ({meta['task']['tasks']}): name one with "
+                "--shape and --pieces"
+            )
+        check_fits(task, meta["task"], step_dir)
+    else:
+        if expect is not None:
+            ckpt.check_same_task(meta["task"], expect, step_dir)
+        task = ckpt.task_from_identity(meta["task"])
     return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
 
 

@@ -29,7 +29,7 @@ from jax.experimental import io_callback
 
 from rllock.config import MCTSConfig, NetConfig
 from rllock.env import State, Task, apply_chunk, candidates_many, compact_dtypes, initial_state, is_solved
-from rllock.network import PLANES, PolicyValueNet, canvas_index, chunk_logits, encode_batch
+from rllock.network import PolicyValueNet, canvas_index, chunk_logits, encode_batch, planes_of
 
 
 @dataclass
@@ -54,8 +54,18 @@ class NodeStore:
     expansions are spread over numba's threads; without, they run on the calling thread (for several
     stores searched in threads of their own)."""
 
-    def __init__(self, task: Task, config: MCTSConfig, canvas: int, seed: int, parallel: bool = True):
+    def __init__(
+        self,
+        task: Task,
+        config: MCTSConfig,
+        canvas: int,
+        seed: int,
+        parallel: bool = True,
+        *,
+        task_planes: bool = False,
+    ):
         self.parallel = parallel
+        self.task_planes = task_planes
         self.task = task
         self.config = config
         self.canvas_idx = canvas_index(task, canvas)
@@ -127,7 +137,7 @@ class NodeStore:
             c = self.cands[i]
             chunks[row, : len(c)] = self.canvas_idx[c]
             valid[row, : len(c)] = True
-        return encode_batch(self.task, labels, placed, self.canvas), chunks, valid
+        return encode_batch(self.task, labels, placed, self.canvas, self.task_planes), chunks, valid
 
     def expand(self, nodes: np.ndarray, actions: np.ndarray):
         """One simulation's expansion for every row: (child nodes, reward, discount, value floor and cap,
@@ -255,7 +265,7 @@ class Searcher:
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.float32),
-            jax.ShapeDtypeStruct((batch, c, c, c, PLANES), jnp.float32),
+            jax.ShapeDtypeStruct((batch, c, c, c, planes_of(net.config)), jnp.float32),
             jax.ShapeDtypeStruct((batch, m, n), jnp.int32),
             jax.ShapeDtypeStruct((batch, m), jnp.bool_),
         )
@@ -312,7 +322,9 @@ class Searcher:
     ) -> list[Episode]:
         """`batch` episodes in lockstep from the empty state; each decision takes the search's
         action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
-        store = self.space(task, self.config, self.canvas, seed, parallel)
+        store = self.space(
+            task, self.config, self.canvas, seed, parallel, task_planes=self.net.config.task_planes
+        )
 
         def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             actions, weights, _ = self.search(params, sub, store, nodes)

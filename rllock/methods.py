@@ -44,7 +44,7 @@ def with_method_defaults(config: TrainConfig) -> TrainConfig:
     - rl-lock-action: 128 simulations per voxel decision and depth at most 32 (the paper's section 5).
     - ppo: near on-policy learning: a buffer of the freshest 2,048 transitions, each sampled about 4
       times (as 4 epochs would), and self-play at most one weights version behind."""
-    general = TrainConfig(shape=config.shape, pieces=config.pieces)
+    general = TrainConfig()
     if config.method == "rl-lock-action":
         mcts = config.mcts
         return dataclasses.replace(

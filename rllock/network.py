@@ -9,6 +9,12 @@ canvas origin and the rest is padding (all planes 0 there):
   4  key        1 on the key P1
   5  previous   1 on the last placed piece Pi (the next piece starts next to it)
   6  progress   i / K on every voxel of the shape
+and, for networks that serve many tasks (`NetConfig.task_planes`, `rllock train --tasks`), what a single
+task's network never needs to be told:
+  7  piece size n / 32 on every voxel of the shape (n = floor(N / K); the shape's size N is plane 0's sum)
+  8  pieces     K / 32 on every voxel of the shape
+The planes are computed from canvas labels (`to_canvas`: -1 off the shape), the form in which a
+multi-task replay buffer stores states of different shapes side by side.
 Policy: the U-Net gives one logit per canvas voxel; a candidate chunk's logit is the mean of its voxels'
 logits (so the policy generalises across the chunks sampled at a node, whatever their number), and
 padding candidates (fewer than M_c accepted) are masked. Value: global average of the bottleneck
@@ -28,7 +34,14 @@ from rllock.env import Task
 from rllock.errors import RLLockError
 
 PLANES = 7
+TASK_PLANES = 2
+TASK_SCALE = 32.0  # n and K are divided by this in planes 7 and 8: values near [0, 1] for these tasks
 MASKED_LOGIT = -1e9
+
+
+def planes_of(config: NetConfig) -> int:
+    """How many input planes a network of `config` reads."""
+    return PLANES + (TASK_PLANES if config.task_planes else 0)
 
 
 def fit_canvas(task: Task, config: NetConfig) -> NetConfig:
@@ -53,21 +66,44 @@ def canvas_index(task: Task, canvas: int) -> np.ndarray:
     return ((x * canvas + y) * canvas + z).astype(np.int32)
 
 
-def encode_batch(task: Task, labels: np.ndarray, placed: np.ndarray, canvas: int) -> np.ndarray:
-    """labels int[B, N], placed int[B] -> float32 planes [B, C, C, C, PLANES] (module docstring)."""
-    k = task.pieces
+def to_canvas(task: Task, labels: np.ndarray, canvas: int) -> np.ndarray:
+    """labels int[B, N] -> int8 canvas labels [B, C^3]: -1 off the shape, else the voxel's label."""
+    out = np.full((labels.shape[0], canvas**3), -1, np.int8)
+    out[:, canvas_index(task, canvas)] = labels
+    return out
+
+
+def encode_canvas(
+    labels: np.ndarray, placed: np.ndarray, pieces: np.ndarray, canvas: int, task_planes: bool = False
+) -> np.ndarray:
+    """Canvas labels int[B, C^3] (-1 off the shape), placed int[B], K int[B] -> float32 planes
+    [B, C, C, C, P] (module docstring); P = PLANES, plus TASK_PLANES with `task_planes`."""
     batch = labels.shape[0]
-    flat = np.zeros((batch, canvas**3, PLANES), dtype=np.float32)
-    idx = canvas_index(task, canvas)
-    placed = np.asarray(placed).reshape(-1, 1)
-    flat[:, idx, 0] = 1.0
-    flat[:, idx, 1] = labels == 0
-    flat[:, idx, 2] = labels > 0
-    flat[:, idx, 3] = labels / k
-    flat[:, idx, 4] = labels == 1
-    flat[:, idx, 5] = (labels == placed) & (placed > 0)
-    flat[:, idx, 6] = placed / k
-    return flat.reshape(batch, canvas, canvas, canvas, PLANES)
+    on = labels >= 0
+    placed = np.asarray(placed).reshape(-1, 1).astype(np.float32)
+    k = np.asarray(pieces).reshape(-1, 1).astype(np.float32)
+    planes = [
+        on,
+        labels == 0,
+        labels > 0,
+        np.where(on, labels, 0) / k,
+        labels == 1,
+        (labels == placed) & (placed > 0),
+        on * (placed / k),
+    ]
+    if task_planes:
+        size = on.sum(axis=1, keepdims=True)
+        planes += [on * (size // k / TASK_SCALE), on * (k / TASK_SCALE)]
+    flat = np.stack(planes, axis=-1).astype(np.float32)
+    return flat.reshape(batch, canvas, canvas, canvas, len(planes))
+
+
+def encode_batch(
+    task: Task, labels: np.ndarray, placed: np.ndarray, canvas: int, task_planes: bool = False
+) -> np.ndarray:
+    """labels int[B, N], placed int[B] -> float32 planes [B, C, C, C, P] (module docstring)."""
+    pieces = np.full(labels.shape[0], task.pieces)
+    return encode_canvas(to_canvas(task, labels, canvas), placed, pieces, canvas, task_planes)
 
 
 class Conv3(nn.Module):
@@ -157,11 +193,14 @@ class PolicyValueNet(nn.Module):
 
 
 def chunk_logits(voxel_logits: jax.Array, chunks: jax.Array, valid: jax.Array) -> jax.Array:
-    """voxel_logits [B, C^3], chunks [B, M, n] canvas indices, valid [B, M] -> logits [B, M]."""
-    gathered = jnp.take_along_axis(voxel_logits[:, None, :], chunks, axis=2)
-    return jnp.where(valid, gathered.mean(axis=-1), MASKED_LOGIT)
+    """voxel_logits [B, C^3], chunks [B, M, n] canvas indices, valid [B, M] -> logits [B, M]. Index -1
+    pads a chunk shorter than n (a multi-task batch mixes piece sizes): the mean is over real voxels."""
+    real = chunks >= 0
+    gathered = jnp.take_along_axis(voxel_logits[:, None, :], jnp.where(real, chunks, 0), axis=2)
+    mean = jnp.sum(jnp.where(real, gathered, 0.0), axis=-1) / jnp.maximum(real.sum(axis=-1), 1)
+    return jnp.where(valid, mean, MASKED_LOGIT)
 
 
 def init_params(config: NetConfig, key: jax.Array) -> dict:
-    dummy = jnp.zeros((1, config.canvas, config.canvas, config.canvas, PLANES), jnp.float32)
+    dummy = jnp.zeros((1, config.canvas, config.canvas, config.canvas, planes_of(config)), jnp.float32)
     return PolicyValueNet(config).init(key, dummy)["params"]

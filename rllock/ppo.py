@@ -66,6 +66,7 @@ class PolicyPlayer:
             raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
         self.config = config
         self.canvas = net.config.canvas
+        self.task_planes = net.config.task_planes
         self.batch = batch
 
         def policy(params, key, planes, chunks, valid):
@@ -87,7 +88,7 @@ class PolicyPlayer:
     ) -> list[Episode]:
         """`batch` episodes from the empty state, each action drawn from the masked policy."""
         del parallel  # the legal masks are cheap: no threads needed
-        store = VoxelStore(task, self.config, self.canvas, seed)
+        store = VoxelStore(task, self.config, self.canvas, seed, task_planes=self.task_planes)
 
         def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             planes, chunks, valid = store.features(nodes)
