@@ -63,6 +63,27 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     return learner
 
 
+def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
+    """A multi-task training run folder (`rllock train --tasks spec`) with one best checkpoint of a fresh
+    learner; returns the learner."""
+    import jax
+
+    from learner.learner import Learner, LearnerConfig
+    from rllock import checkpoint as ckpt
+    from rllock.config import to_json
+    from rllock.tasks import parse_tasks
+
+    tasks = parse_tasks(spec, canvas=net.canvas)
+    net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)
+    learner = Learner(None, net, LearnerConfig(), jax.random.PRNGKey(3))
+    config = TrainConfig(tasks=spec, net=net, mcts=mcts)
+    mngr = ckpt.manager(run / "best", keep=1)
+    ckpt.save(mngr, step, learner.state(), ckpt.meta(to_json(config), tasks.identity(), step, None, {},
+                                                     [ckpt.provenance()]))  # fmt: skip
+    mngr.close()
+    return learner
+
+
 def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:
     """The checks (fast.CONNECTED | REMOVABLE | INTERLOCKING) that the reference checkers pass on the
     newest part parts[-1] and the remaining volume `rest`."""

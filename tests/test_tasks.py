@@ -1,0 +1,266 @@
+"""Multi-task training's pieces: task specs, random shapes, canvas states and their symmetries."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import parts_after, random_valid_states, raw_chunks, reference_bits, run_cli, save_multitask_run
+
+from actors.selfplay import PlaySpec, SelfPlayWorker
+from learner.learner import Learner
+from learner.replay import ReplayBuffer
+from orchestration.train import _setup
+from rllock.assembly import read_assembly
+from rllock.canvas import augment_canvas, canvas_episode
+from rllock.cli import main
+from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
+from rllock.env import State, make_task
+from rllock.errors import RLLockError
+from rllock.inference import load_policy
+from rllock.network import (
+    TASK_SCALE,
+    canvas_index,
+    chunk_logits,
+    encode_batch,
+    init_params,
+    to_canvas,
+)
+from rllock.shapes import crop, is_connected
+from rllock.tasks import parse_tasks, random_shape
+from rllock.verifier import verify_labels
+
+SPEC = "cube4:6-9,box:6x5x4:8-12,random:60-200:6-20"
+
+
+def test_spec_parses_into_groups_on_the_papers_canvas():
+    tasks = parse_tasks(SPEC)
+    assert tasks.canvas == 8 and [g.pieces for g in tasks.groups] == [(6, 9), (8, 12), (6, 20)]
+    assert tasks.groups[1].grid.shape == (6, 5, 4) and tasks.groups[2].sizes == (60, 200)
+    assert tasks.max_piece_size() == 200 // 6
+    assert parse_tasks("cube9:10").canvas == 12  # grows to fit a larger shape, in steps of 4
+
+
+@pytest.mark.parametrize(
+    "spec,message",
+    [
+        ("", "empty"),
+        ("cube4", "no piece count"),
+        ("cube4:9-6", "9-6"),
+        ("cube4:x", "bad piece count"),
+        ("cube4:1-3", "at least 2"),
+        ("cube2:9", "exceeds the shape"),
+        ("nosuchshape:4", "unknown shape"),
+        ("cube9:10", "does not fit"),
+        ("random:600:4", "exceed the 8\\^3 canvas"),
+    ],
+)
+def test_bad_specs_are_one_line_errors(spec, message):
+    with pytest.raises(RLLockError, match=message):
+        parse_tasks(spec, canvas=8 if "cube9" in spec or "random" in spec else None)
+
+
+def test_random_shapes_are_connected_compact_solids_of_the_asked_size():
+    rng = np.random.default_rng(0)
+    for size in (4, 60, 137, 200):
+        grid = random_shape(rng, size, 8)
+        assert grid.sum() == size and max(grid.shape) <= 8 and is_connected(grid)
+        assert np.array_equal(grid, crop(grid))
+        if size >= 60:  # compact: fills at least a third of its bounding box (a tree would not)
+            assert grid.sum() / grid.size > 1 / 3
+    a, b = random_shape(np.random.default_rng(5), 90, 8), random_shape(np.random.default_rng(5), 90, 8)
+    assert np.array_equal(a, b)
+
+
+def test_draws_cover_every_group_within_its_ranges():
+    tasks = parse_tasks(SPEC)
+    rng = np.random.default_rng(1)
+    seen = set()
+    for _ in range(60):
+        g, task = tasks.draw(rng)
+        seen.add(g)
+        lo, hi = tasks.groups[g].pieces
+        assert lo <= task.pieces <= hi and max(task.topology.dims) <= tasks.canvas
+        assert task.piece_size <= tasks.max_piece_size()
+        if tasks.groups[g].sizes is not None:
+            assert 60 <= task.size <= 200 and task.piece_size >= 2
+    assert seen == {0, 1, 2}
+    first = [(t.shape_name, t.pieces) for t in tasks.validation_tasks(7)]
+    assert first == [(t.shape_name, t.pieces) for t in tasks.validation_tasks(7)]  # fixed
+    assert first[0] == ("cube4", 7)
+
+
+def reference_planes(task, labels: np.ndarray, placed: int, canvas: int, task_planes: bool) -> np.ndarray:
+    """The module docstring's planes, voxel by voxel."""
+    k, n = task.pieces, task.piece_size
+    out = np.zeros((canvas, canvas, canvas, 9 if task_planes else 7), np.float32)
+    for v, (x, y, z) in enumerate(task.topology.coords):
+        j = int(labels[v])
+        row = [1, j == 0, j > 0, j / k, j == 1, j == placed and placed > 0, placed / k]
+        if task_planes:
+            row += [n / TASK_SCALE, k / TASK_SCALE]
+        out[x, y, z] = row
+    return out
+
+
+@pytest.mark.parametrize("task_planes", [False, True])
+def test_encoding_matches_a_voxel_by_voxel_reference(task_planes):
+    task = make_task("box:5x3x2", 5)  # N = 30, n = 6
+    rng = np.random.default_rng(0)
+    for state in list(random_valid_states(task, rng, 3))[:6]:
+        got = encode_batch(task, state.labels[None], np.array([state.placed]), 8, task_planes)[0]
+        want = reference_planes(task, state.labels, state.placed, 8, task_planes)
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+def test_padded_chunks_score_like_unpadded_ones():
+    logits = jax.random.normal(jax.random.PRNGKey(0), (2, 64))
+    chunks = jnp.array(np.random.default_rng(0).integers(0, 64, (2, 5, 3)))
+    valid = jnp.ones((2, 5), bool)
+    padded = jnp.concatenate([chunks, -jnp.ones((2, 5, 4), chunks.dtype)], axis=-1)
+    np.testing.assert_allclose(
+        chunk_logits(logits, padded, valid), chunk_logits(logits, chunks, valid), rtol=1e-6
+    )
+
+
+def l_shape() -> np.ndarray:
+    """An L-shaped block without symmetries that map it onto itself, other than the identity."""
+    grid = np.zeros((4, 3, 2), bool)
+    grid[:, 0, :] = True
+    grid[0, :, :] = True
+    grid[3, 1, 0] = True
+    return grid
+
+
+def test_box_symmetries_map_states_to_states_of_the_moved_shape_with_the_same_checks():
+    """Every augmented transition is a state of the rotated or mirrored shape, and each candidate chunk
+    passes exactly the reference checks there that it passed on the original."""
+    task = make_task(l_shape(), 4)  # N = 13, n = 3
+    canvas, piece, n = 8, 6, 3
+    rng = np.random.default_rng(3)
+    maps_used = set()
+    compared = 0
+    for i, state in enumerate(list(random_valid_states(task, rng, 8))[:12]):
+        chunks = raw_chunks(task, state, rng, 6)
+        if len(chunks) == 0:
+            continue
+        sample = {
+            "labels": to_canvas(task, state.labels[None], canvas),
+            "chunks": np.pad(
+                canvas_index(task, canvas)[chunks], ((0, 0), (0, piece - n)), constant_values=-1
+            )[None].astype(np.int16),
+        }
+        for seed in range(4):
+            moved = augment_canvas(sample, canvas, 10 * i + seed)
+            cells = moved["labels"][0].reshape(canvas, canvas, canvas)
+            grid = cells >= 0
+            assert grid[0].any() and grid[:, 0].any() and grid[:, :, 0].any()  # still at the origin
+            assert grid.sum() == task.size
+            maps_used.add(grid.tobytes())
+            image = make_task(crop(grid), 4)
+            idx = canvas_index(image, canvas)
+            image_state = State(moved["labels"][0][idx].astype(np.int16), state.placed)
+            voxel_of = {int(c): v for v, c in enumerate(idx)}
+            for chunk, moved_chunk in zip(chunks, moved["chunks"][0]):
+                assert (moved_chunk[n:] == -1).all()
+                image_chunk = np.array([voxel_of[int(c)] for c in moved_chunk[:n]])
+                before = reference_bits(*parts_after(task, state, chunk), "straight")
+                after = reference_bits(*parts_after(image, image_state, image_chunk), "straight")
+                assert before == after
+                compared += 1
+    assert compared >= 30 and len(maps_used) > 4  # several distinct images of the shape
+
+
+def test_multitask_selfplay_fills_a_canvas_buffer_the_learner_trains_on():
+    """A worker on a task set plays a drawn task, its episodes come as canvas states, and the learner's
+    planes for them equal the single-task encoding of the same states."""
+    tasks = parse_tasks("box:4x3x2:3-4,cube3:3", canvas=4)
+    net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
+    mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
+    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=4), seed=0)
+    worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
+    buffer = ReplayBuffer(100, 64, 4, tasks.max_piece_size())
+    groups = set()
+    for _ in range(4):
+        episodes, stats = worker.play()
+        groups.add(stats.group)
+        assert all(e.labels.shape[1] == 64 for e in episodes)
+        buffer.add_many(episodes, stats.pieces)
+    assert groups == {0, 1} and len(worker.compiled) >= 2  # n = 6, 8 (box) and 9 (cube3)
+    learner = Learner(None, net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
+    sample = buffer.sample(8, seed=0)
+    planes, chunks, valid, _, _ = learner.prepare(sample)
+    for row in range(8):
+        k = int(sample["pieces"][row])
+        on = sample["labels"][row] >= 0
+        size = int(on.sum())
+        grid = on.reshape(4, 4, 4)
+        task = make_task(crop(grid), k)
+        labels = sample["labels"][row][canvas_index(task, 4)]
+        want = encode_batch(task, labels[None], sample["placed"][row : row + 1], 4, True)[0]
+        np.testing.assert_allclose(planes[row], want)
+        assert task.piece_size == size // k
+        real = chunks[row][valid[row]]
+        assert ((real >= 0).sum(axis=1) == task.piece_size).all()
+    before = learner.params
+    learner.update(sample)
+    assert learner.step == 1 and not all(
+        np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params))
+    )
+
+
+def test_canvas_episode_pads_chunks_and_marks_the_shape():
+    tasks = parse_tasks("box:4x3x2:4", canvas=4)
+    net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
+    mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
+    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=2), seed=1)
+    task = tasks.validation_tasks(0)[0]
+    episode = worker.searchers(task)[0].play(
+        init_params(net, jax.random.PRNGKey(0)), task, jax.random.PRNGKey(0), seed=0
+    )[0]
+    out = canvas_episode(task, episode, 4, 9)
+    assert out.labels.shape == (len(episode.z), 64) and (out.labels >= 0).sum(axis=1).tolist() == [24] * len(
+        episode.z
+    )
+    assert (out.chunks[:, :, 6:] == -1).all()
+    for t in range(len(episode.z)):
+        m = int(episode.num_valid[t])
+        np.testing.assert_array_equal(out.chunks[t, :m, :6], canvas_index(task, 4)[episode.chunks[t, :m]])
+        assert (out.chunks[t, m:] == -1).all()
+
+
+MULTI_NET = NetConfig(canvas=4, features=(4, 8))
+MULTI_MCTS = MCTSConfig(simulations=4, max_considered=4, raw_samples=128, candidates=8)
+
+
+def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_never_saw(tmp_path, capsys):
+    save_multitask_run(tmp_path / "run", "cube3:3-4,random:12-30:3-5", net=MULTI_NET, mcts=MULTI_MCTS)
+    out = tmp_path / "out"
+    code, stdout, err = run_cli(
+        "generate", "--checkpoint", str(tmp_path / "run"), "--shape", "box:4x3x2", "--pieces", "3",
+        "--count", "2", "--batch", "16", "--time-limit", "60", "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, err
+    written = sorted(out.glob("assembly_*"))
+    assert len(written) == 2 and "box:4x3x2 K=3" in stdout
+    for folder in written:
+        labels, meta = read_assembly(folder)
+        assert verify_labels(labels).valid and labels.shape == (4, 3, 2) and labels.max() == 3
+    assert main(["generate", "--checkpoint", str(tmp_path / "run"), "--out", str(tmp_path / "o2")]) == 2
+    assert "serves many tasks" in capsys.readouterr().err.strip().splitlines()[-1]
+    with pytest.raises(RLLockError, match="does not fit"):
+        load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3))
+
+
+def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
+    saved = save_multitask_run(tmp_path / "run", "cube3:3-4", net=MULTI_NET, mcts=MULTI_MCTS)
+    config = TrainConfig(shape="box:4x3x2", pieces=4, init=str(tmp_path / "run"))
+    config, task, tasks, identity, init = _setup(config)
+    assert task is not None and tasks is None and identity["pieces"] == 4
+    assert config.net.task_planes and config.net.canvas == 4 and config.net.features == (4, 8)
+    learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
+    learner.start_from(init)
+    for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
+        np.testing.assert_array_equal(a, b)
+    assert learner.step == 0
