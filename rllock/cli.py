@@ -390,6 +390,28 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_transfer(args: argparse.Namespace) -> int:
+    from rllock.transfer import bench_transfer_task, format_transfer_table, parse_transfer_tasks, row_json
+
+    tasks = parse_transfer_tasks(args.tasks)
+    out = _table_out(args)
+    rows = []
+    for task in tqdm(tasks, desc="bench transfer", unit="task"):
+        rows.append(
+            bench_transfer_task(
+                args.checkpoint,
+                task,
+                count=args.count,
+                batch=args.batch,
+                time_limit=args.time_limit,
+                seed=args.seed,
+            )
+        )
+    table = format_transfer_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
+    _emit_table(args, out, table, [row_json(r) for r in rows])
+    return 0
+
+
 def cmd_bench_ablation(args: argparse.Namespace) -> int:
     from rllock.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
     from rllock.config import METHODS
@@ -632,6 +654,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tasks", default=None, help="default: cube4-k7,cube4-k8,cube4-k9,cube5-k13")
     _add_table_bench_args(p, "run")
     p.set_defaults(func=cmd_bench_ablation)
+
+    p = bench.add_parser(
+        "transfer",
+        help="a multi-task checkpoint zero-shot, against untrained, per-task checkpoints and the solver",
+    )
+    p.add_argument(
+        "--checkpoint", required=True, help="a multi-task run's folder or a shipped name (general)"
+    )
+    p.add_argument(
+        "--tasks",
+        default=None,
+        help="SHAPE:K list, e.g. sofa:12,cube4:9 (default: the held-out set, rllock.transfer.HELD_OUT)",
+    )
+    _add_table_bench_args(p, "arm")
+    p.set_defaults(func=cmd_bench_transfer)
 
     p = bench.add_parser("learning", help="a checkpoint against the same search with an untrained network")
     _add_checkpoint_args(p)

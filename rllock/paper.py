@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax
@@ -20,7 +21,7 @@ import jax
 from rllock.bench import PAPER_MINUTES
 from rllock.checkpoint import shipped_names
 from rllock.config import MCTSConfig, NetConfig
-from rllock.env import initial_state, make_task, sample_accepted
+from rllock.env import Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
 from rllock.inference import Policy, generate, load_policy, untrained_like
 from rllock.network import fit_canvas, init_params
@@ -93,40 +94,50 @@ def _untrained_policy(task: PaperTask, seed: int) -> Policy:
     return Policy(t, net, MCTSConfig(), "rl-lock", params, f"untrained ({seed})", 0)
 
 
-def warm_process(task: PaperTask) -> None:
+def warm_process(shape: str, pieces: int) -> None:
     """Pay the once-per-process costs before any arm is timed: the sampler's compiled code (numba's
     cache) and JAX's backend."""
-    t = make_task(task.shape, task.pieces)
+    t = make_task(shape, pieces)
     sample_accepted(t, initial_state(t), seed=0, num_samples=1)
     jax.block_until_ready(jax.numpy.zeros(1) + 1)
 
 
-def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: float, seed: int) -> PaperRow:
-    warm_process(task)
-    shipped = task.name in shipped_names()
-    trained = None
-    if shipped:
-        t0 = time.perf_counter()
-        policy = load_policy(task.name)
-        r = generate(policy, count=count, batch=batch, time_limit=time_limit, seed=seed, progress=False)
-        trained = Arm(r.valid, r.episodes, time.perf_counter() - t0)
-        log.info("%s trained: %d valid in %.1f s", task.name, trained.valid, trained.seconds)
-        baseline = untrained_like(policy, seed)
-    else:
-        baseline = _untrained_policy(task, seed)
+def policy_arm(
+    load: Callable[[], Policy], *, count: int, batch: int, time_limit: float, seed: int
+) -> tuple[Arm, Policy]:
+    """The protocol with the policy `load` gives, its loading and its search's compiling timed with it."""
     t0 = time.perf_counter()
-    r = generate(baseline, count=count, batch=batch, time_limit=time_limit, seed=seed, progress=False)
-    untrained = Arm(r.valid, r.episodes, time.perf_counter() - t0)
-    log.info("%s untrained: %d valid in %.1f s", task.name, untrained.valid, untrained.seconds)
-    solver_task = make_task(task.shape, task.pieces)
+    policy = load()
+    r = generate(policy, count=count, batch=batch, time_limit=time_limit, seed=seed, progress=False)
+    arm = Arm(r.valid, r.episodes, time.perf_counter() - t0)
+    log.info("%s: %d valid in %.1f s", policy.source, arm.valid, arm.seconds)
+    return arm, policy
+
+
+def solver_arm(task: Task, *, count: int, time_limit: float, seed: int) -> Arm:
+    """The search solver until `count` assemblies or the limit."""
     t0 = time.perf_counter()
     found = 0
-    for _ in search(solver_task, seed=seed, time_limit=time_limit):
+    for _ in search(task, seed=seed, time_limit=time_limit):
         found += 1
         if found >= count:
             break
-    solver = Arm(found, None, time.perf_counter() - t0)
-    log.info("%s solver: %d valid in %.1f s", task.name, solver.valid, solver.seconds)
+    arm = Arm(found, None, time.perf_counter() - t0)
+    log.info("solver: %d valid in %.1f s", arm.valid, arm.seconds)
+    return arm
+
+
+def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: float, seed: int) -> PaperRow:
+    warm_process(task.shape, task.pieces)
+    protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
+    shipped = task.name in shipped_names()
+    trained = None
+    if shipped:
+        trained, policy = policy_arm(lambda: load_policy(task.name), **protocol)
+        untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
+    else:
+        untrained, _ = policy_arm(lambda: _untrained_policy(task, seed), **protocol)
+    solver = solver_arm(make_task(task.shape, task.pieces), count=count, time_limit=time_limit, seed=seed)
     return PaperRow(
         task,
         task.name if shipped else None,

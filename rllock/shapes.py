@@ -34,7 +34,9 @@ VENDORED_SHAPES = {
     "desia-bunny": "desia_bunny_origin.puz",
     "desia-dog": "desia_dog_origin.puz",
 }
-BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring, " + ", ".join(VENDORED_SHAPES)
+BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring, stairs, tube, " + ", ".join(
+    VENDORED_SHAPES
+)
 
 _DATA = Path(__file__).resolve().parent / "data"
 
@@ -55,6 +57,21 @@ def ring() -> np.ndarray:
     return grid
 
 
+def stairs() -> np.ndarray:
+    """Three steps, 6 voxels wide: columns of height 6, 4 and 2, each 2 deep (N = 144)."""
+    grid = np.zeros((6, 6, 6), dtype=bool)
+    for x in range(6):
+        grid[x, :, : 6 - 2 * (x // 2)] = True
+    return grid
+
+
+def tube() -> np.ndarray:
+    """A square tube: 7x7, 4 long, with a centred 3x3 hole through it (N = 160)."""
+    grid = np.ones((7, 7, 4), dtype=bool)
+    grid[2:5, 2:5, :] = False
+    return grid
+
+
 def builtin_shape(name: str) -> np.ndarray | None:
     """The grid of a built-in shape name, or None when `name` is not one."""
     if match := re.fullmatch(r"cube(\d+)", name):
@@ -69,6 +86,10 @@ def builtin_shape(name: str) -> np.ndarray | None:
         return np.ones(dims, dtype=bool)
     if name == "ring":
         return ring()
+    if name == "stairs":
+        return stairs()
+    if name == "tube":
+        return tube()
     if name in VENDORED_SHAPES:
         path = data_path(Path("shapes") / VENDORED_SHAPES[name])
         return read_vol(path) if path.suffix == ".vol" else read_puz_labels(path) != 0

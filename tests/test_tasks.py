@@ -6,7 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import parts_after, random_valid_states, raw_chunks, reference_bits, run_cli, save_multitask_run
+from helpers import (
+    parts_after,
+    random_valid_states,
+    raw_chunks,
+    reference_bits,
+    run_cli,
+    save_multitask_run,
+    save_run,
+)
 
 from actors.selfplay import PlaySpec, SelfPlayWorker
 from learner.learner import Learner
@@ -14,6 +22,7 @@ from learner.replay import ReplayBuffer
 from orchestration.train import _setup
 from rllock.assembly import read_assembly
 from rllock.canvas import augment_canvas, canvas_episode
+from rllock.checkpoint import find_step_dir, read_meta
 from rllock.cli import main
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
 from rllock.env import State, make_task
@@ -27,8 +36,10 @@ from rllock.network import (
     init_params,
     to_canvas,
 )
+from rllock.paper import Arm
 from rllock.shapes import crop, is_connected
 from rllock.tasks import parse_tasks, random_shape
+from rllock.transfer import TransferTask, bench_transfer_task, parse_transfer_tasks, ratio, trained_on
 from rllock.verifier import verify_labels
 
 SPEC = "cube4:6-9,box:6x5x4:8-12,random:60-200:6-20"
@@ -264,3 +275,32 @@ def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
     assert learner.step == 0
+
+
+def test_transfer_tasks_and_ratios():
+    tasks = parse_transfer_tasks("sofa:12, cube4-k9,box:4x3x2:3")
+    assert [(t.shape, t.pieces, t.name) for t in tasks] == [
+        ("sofa", 12, "sofa-k12"),
+        ("cube4", 9, "cube4-k9"),
+        ("box:4x3x2", 3, "box:4x3x2-k3"),
+    ]
+    assert len(parse_transfer_tasks(None)) == 10
+    with pytest.raises(RLLockError, match="SHAPE:K"):
+        parse_transfer_tasks("sofa")
+    assert ratio(Arm(5, 64, 10.0), Arm(5, 128, 40.0)) == "0.25"
+    assert ratio(Arm(5, 64, 10.0), Arm(0, 640, 100.0)) == "<= 0.02"  # 2 s per valid, over 100 s
+    assert ratio(Arm(0, 64, 10.0), Arm(5, 64, 10.0)) is None
+
+
+def test_bench_transfer_runs_every_arm_and_knows_which_shapes_were_trained(tmp_path):
+    save_multitask_run(tmp_path / "run", "box:4x3x2:3-4,random:12-30:3-5", net=MULTI_NET, mcts=MULTI_MCTS)
+    protocol = dict(count=1, batch=8, time_limit=30, seed=0)
+    row = bench_transfer_task(str(tmp_path / "run"), TransferTask("box:3x3x2", 2), **protocol)
+    assert not row.seen and row.per_task is None
+    assert row.zero_shot.valid == row.untrained.valid == row.solver.valid == 1
+    meta = read_meta(find_step_dir(tmp_path / "run"))
+    assert trained_on(meta, make_task("box:4x3x2", 4)) and not trained_on(meta, make_task("box:3x4x2", 4))
+    single = tmp_path / "single"
+    save_run(single, "box:4x3x2", 3, net=MULTI_NET, mcts=MULTI_MCTS)
+    with pytest.raises(RLLockError, match="one task"):
+        bench_transfer_task(str(single), TransferTask("box:4x3x2", 3), **protocol)
