@@ -32,7 +32,7 @@ def describe(name: str, folder: Path | None = None) -> dict:
     sessions = meta.get("sessions", [])
     return {
         "name": name,
-        "task": f"{task['shape']} K={task['pieces']}",
+        "task": f"tasks {task['tasks']}" if "tasks" in task else f"{task['shape']} K={task['pieces']}",
         "canvas": task["canvas"],
         "simulations": config["mcts"]["simulations"],
         "training_minutes": round(counters.get("seconds", 0.0) / 60, 1),

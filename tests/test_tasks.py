@@ -20,6 +20,7 @@ from actors.selfplay import PlaySpec, SelfPlayWorker
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
 from orchestration.train import _setup
+from rllock import pretrained
 from rllock.assembly import read_assembly
 from rllock.canvas import augment_canvas, canvas_episode
 from rllock.checkpoint import find_step_dir, read_meta
@@ -262,6 +263,13 @@ def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_neve
     assert "serves many tasks" in capsys.readouterr().err.strip().splitlines()[-1]
     with pytest.raises(RLLockError, match="does not fit"):
         load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3))
+
+
+def test_a_multitask_checkpoint_ships_and_lists_its_task_groups(tmp_path):
+    save_multitask_run(tmp_path / "run", "cube3:3-4,random:12-30:3-5", net=MULTI_NET, mcts=MULTI_MCTS)
+    pretrained.ship(tmp_path / "run", "general", into=tmp_path / "shipped")
+    row = pretrained.describe("general", tmp_path / "shipped")
+    assert row["task"] == "tasks cube3:3-4,random:12-30:3-5" and row["canvas"] == 4
 
 
 def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
