@@ -65,12 +65,15 @@ def _restore_latest(logdir: Path, learner: Learner) -> dict:
     raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
 
 
-def _setup(config: TrainConfig) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, dict | None]:
+def _setup(
+    config: TrainConfig, *, resume: bool = False
+) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, dict | None]:
     """(the config with a concrete network, the task or the task set, what the run is for, and the
-    parameters to start from when --init names a checkpoint)."""
+    parameters to start from when --init names a checkpoint). A resumed run's saved config already
+    holds the --init checkpoint's network settings, so that checkpoint is not read again."""
     init = None
     net = config.net
-    if config.init is not None:
+    if config.init is not None and not resume:
         _, _, net, _, init = load_network(config.init)
     if config.tasks is not None:
         tasks = parse_tasks(config.tasks, canvas=net.canvas, removal=config.removal, step=net.levels_step())
@@ -85,7 +88,7 @@ def _setup(config: TrainConfig) -> tuple[TrainConfig, Task | None, TaskSet | Non
 def train(config: TrainConfig, *, resume: bool = False) -> dict:
     began = time.monotonic()
     config.validate()
-    config, task, tasks, identity, init = _setup(with_method_defaults(config))
+    config, task, tasks, identity, init = _setup(with_method_defaults(config), resume=resume)
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
     counters, last_score, sessions = Counters(), None, []
