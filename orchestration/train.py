@@ -147,13 +147,8 @@ class _Run:
         last_score: dict | None,
         began: float,
     ):
-        self.config, self.task, self.tasks, self.learner, self.recorder = (
-            config,
-            task,
-            tasks,
-            learner,
-            recorder,
-        )
+        self.config, self.task, self.tasks = config, task, tasks
+        self.learner, self.recorder = learner, recorder
         self.counters, self.last_score = counters, last_score
         self.pacing = Pacing.of(config)
         self.began = began
