@@ -101,9 +101,25 @@ def encode_canvas(
 def encode_batch(
     task: Task, labels: np.ndarray, placed: np.ndarray, canvas: int, task_planes: bool = False
 ) -> np.ndarray:
-    """labels int[B, N], placed int[B] -> float32 planes [B, C, C, C, P] (module docstring)."""
-    pieces = np.full(labels.shape[0], task.pieces)
-    return encode_canvas(to_canvas(task, labels, canvas), placed, pieces, canvas, task_planes)
+    """labels int[B, N], placed int[B] -> float32 planes [B, C, C, C, P] (module docstring). The search's
+    hot path: it writes the shape's voxels only; `encode_canvas` gives the same planes from canvas
+    labels."""
+    k = task.pieces
+    batch = labels.shape[0]
+    flat = np.zeros((batch, canvas**3, PLANES + (TASK_PLANES if task_planes else 0)), dtype=np.float32)
+    idx = canvas_index(task, canvas)
+    placed = np.asarray(placed).reshape(-1, 1)
+    flat[:, idx, 0] = 1.0
+    flat[:, idx, 1] = labels == 0
+    flat[:, idx, 2] = labels > 0
+    flat[:, idx, 3] = labels / k
+    flat[:, idx, 4] = labels == 1
+    flat[:, idx, 5] = (labels == placed) & (placed > 0)
+    flat[:, idx, 6] = placed / k
+    if task_planes:
+        flat[:, idx, 7] = task.piece_size / TASK_SCALE
+        flat[:, idx, 8] = k / TASK_SCALE
+    return flat.reshape(batch, canvas, canvas, canvas, flat.shape[-1])
 
 
 class Conv3(nn.Module):

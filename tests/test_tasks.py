@@ -34,6 +34,7 @@ from rllock.network import (
     canvas_index,
     chunk_logits,
     encode_batch,
+    encode_canvas,
     init_params,
     to_canvas,
 )
@@ -124,6 +125,10 @@ def test_encoding_matches_a_voxel_by_voxel_reference(task_planes):
         got = encode_batch(task, state.labels[None], np.array([state.placed]), 8, task_planes)[0]
         want = reference_planes(task, state.labels, state.placed, 8, task_planes)
         np.testing.assert_allclose(got, want, rtol=1e-6)
+        from_canvas = encode_canvas(
+            to_canvas(task, state.labels[None], 8), np.array([state.placed]), np.array([5]), 8, task_planes
+        )[0]
+        np.testing.assert_allclose(from_canvas, want, rtol=1e-6)
 
 
 def test_padded_chunks_score_like_unpadded_ones():
