@@ -373,43 +373,31 @@ def _emit_table(args: argparse.Namespace, out: Path | None, table: str, rows: li
         out.write_text(table)
 
 
+def _task_table(args: argparse.Namespace, name: str, tasks: list, bench_one, format_table, row_json) -> int:
+    """A table bench (paper, transfer): `bench_one(task, **protocol)` per task, then the table."""
+    out = _table_out(args)
+    protocol = dict(count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed)
+    rows = [bench_one(task, **protocol) for task in tqdm(tasks, desc=f"bench {name}", unit="task")]
+    table = format_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
+    _emit_table(args, out, table, [row_json(r) for r in rows])
+    return 0
+
+
 def cmd_bench_paper(args: argparse.Namespace) -> int:
     from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
 
     tasks = parse_paper_tasks(args.tasks)
-    out = _table_out(args)
-    rows = []
-    for task in tqdm(tasks, desc="bench paper", unit="task"):
-        rows.append(
-            bench_paper_task(
-                task, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed
-            )
-        )
-    table = format_paper_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
-    _emit_table(args, out, table, [row_json(r) for r in rows])
-    return 0
+    return _task_table(args, "paper", tasks, bench_paper_task, format_paper_table, row_json)
 
 
 def cmd_bench_transfer(args: argparse.Namespace) -> int:
+    from functools import partial
+
     from rllock.transfer import bench_transfer_task, format_transfer_table, parse_transfer_tasks, row_json
 
     tasks = parse_transfer_tasks(args.tasks)
-    out = _table_out(args)
-    rows = []
-    for task in tqdm(tasks, desc="bench transfer", unit="task"):
-        rows.append(
-            bench_transfer_task(
-                args.checkpoint,
-                task,
-                count=args.count,
-                batch=args.batch,
-                time_limit=args.time_limit,
-                seed=args.seed,
-            )
-        )
-    table = format_transfer_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
-    _emit_table(args, out, table, [row_json(r) for r in rows])
-    return 0
+    bench_one = partial(bench_transfer_task, args.checkpoint)
+    return _task_table(args, "transfer", tasks, bench_one, format_transfer_table, row_json)
 
 
 def cmd_bench_ablation(args: argparse.Namespace) -> int:

@@ -148,17 +148,28 @@ def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: flo
     )
 
 
-def row_json(row: PaperRow) -> dict:
-    def arm(a: Arm | None) -> dict | None:
-        if a is None:
-            return None
-        return {
-            "valid": a.valid,
-            "episodes": a.episodes,
-            "seconds": round(a.seconds, 2),
-            "time_per_valid_s": a.time_per_valid_s,
-        }
+def arm_json(a: Arm | None) -> dict | None:
+    if a is None:
+        return None
+    return {
+        "valid": a.valid,
+        "episodes": a.episodes,
+        "seconds": round(a.seconds, 2),
+        "time_per_valid_s": a.time_per_valid_s,
+    }
 
+
+def arm_cell(a: Arm | None) -> str:
+    """An arm in a markdown table: seconds per valid assembly (valid found), or none in S seconds."""
+    if a is None:
+        return "not shipped"
+    if not a.valid:
+        return f"none in {a.seconds:.0f}"
+    return f"{a.time_per_valid_s:.1f} ({a.valid})"
+
+
+def row_json(row: PaperRow) -> dict:
+    arm = arm_json
     return {
         "task": row.task.name,
         "shape": row.task.shape,
@@ -175,13 +186,7 @@ def row_json(row: PaperRow) -> dict:
 
 def format_paper_table(rows: list[PaperRow], time_limit: float, command: str) -> str:
     """The markdown table: seconds per valid assembly, with the valid count, beside the paper's."""
-
-    def arm(a: Arm | None) -> str:
-        if a is None:
-            return "not shipped"
-        if not a.valid:
-            return f"none in {a.seconds:.0f}"
-        return f"{a.time_per_valid_s:.1f} ({a.valid})"
+    arm = arm_cell
 
     def paper(task: PaperTask, v: float | None) -> str:
         if not task.in_table:

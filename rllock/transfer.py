@@ -18,7 +18,7 @@ from rllock.checkpoint import find_step_dir, read_meta, shipped_names, task_iden
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
 from rllock.inference import is_multitask, load_policy, untrained_like
-from rllock.paper import Arm, policy_arm, solver_arm, warm_process
+from rllock.paper import Arm, arm_cell, arm_json, policy_arm, solver_arm, warm_process
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,
 # on the paper's 8^3 canvas, two piece counts each.
@@ -89,12 +89,7 @@ def trained_on(meta: dict, task: Task) -> bool:
 
 
 def row_json(row: TransferRow) -> dict:
-    def arm(a: Arm | None) -> dict | None:
-        if a is None:
-            return None
-        return {"valid": a.valid, "episodes": a.episodes, "seconds": round(a.seconds, 2),
-                "time_per_valid_s": a.time_per_valid_s}  # fmt: skip
-
+    arm = arm_json
     return {
         "task": f"{row.task.shape}:{row.task.pieces}",
         "seen_in_training": row.seen,
@@ -118,13 +113,7 @@ def ratio(a: Arm, b: Arm | None) -> str | None:
 
 
 def format_transfer_table(rows: list[TransferRow], time_limit: float, command: str) -> str:
-    def arm(a: Arm | None) -> str:
-        if a is None:
-            return "not shipped"
-        if not a.valid:
-            return f"none in {a.seconds:.0f}"
-        return f"{a.time_per_valid_s:.1f} ({a.valid})"
-
+    arm = arm_cell
     lines = [
         f"    {command}",
         "",
