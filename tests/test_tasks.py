@@ -15,11 +15,13 @@ from helpers import (
     save_multitask_run,
     save_run,
 )
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from actors.selfplay import PlaySpec, SelfPlayWorker
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
-from orchestration.train import _setup
+from orchestration.recorder import Counters, Recorder
+from orchestration.train import _Run, _setup
 from rllock import pretrained
 from rllock.assembly import read_assembly
 from rllock.canvas import augment_canvas, canvas_episode
@@ -317,3 +319,32 @@ def test_bench_transfer_runs_every_arm_and_knows_which_shapes_were_trained(tmp_p
     save_run(single, "box:4x3x2", 3, net=MULTI_NET, mcts=MULTI_MCTS)
     with pytest.raises(RLLockError, match="one task"):
         bench_transfer_task(str(single), TransferTask("box:4x3x2", 3), **protocol)
+
+
+def test_multitask_validation_scores_each_group_in_tensorboard_and_keeps_the_best(tmp_path):
+    """One validation of a multi-task run (no Ray needed): a fixed task per group, a score per group
+    and their mean, TensorBoard tags per group, and the best checkpoint saved for the task set."""
+    config = TrainConfig(
+        tasks="box:4x3x2:3,cube3:3",
+        net=MULTI_NET,
+        mcts=MULTI_MCTS,
+        validation_episodes=4,
+        logdir=str(tmp_path),
+    )
+    config, task, tasks, identity, _ = _setup(config)
+    learner = Learner(None, config.net, config.learner, jax.random.PRNGKey(0))
+    recorder = Recorder(tmp_path, config, identity, 0, False, [])
+    run = _Run(config, task, tasks, learner, recorder, Counters(), None, 0.0)
+    run._validate()
+    recorder.close()
+    score = run.last_score
+    assert list(score["groups"]) == ["box:4x3x2:3", "cube3:3"] and score["episodes"] == 8
+    rates = [g["success_rate"] for g in score["groups"].values()]
+    assert score["success_rate"] == pytest.approx(np.mean(rates))
+    assert [g["task"] for g in score["groups"].values()] == ["box:4x3x2 K=3", "cube3 K=3"]
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"validation/box_4x3x2_3/success_rate", "validation/cube3_3/success_rate"} <= tags
+    meta = read_meta(find_step_dir(tmp_path))
+    assert meta["task"]["tasks"] == "box:4x3x2:3,cube3:3" and meta["validation"]["groups"]
