@@ -34,8 +34,10 @@ class TaskGroup:
 
     def max_piece_size(self) -> int:
         """The largest n = floor(N / K) a draw of this group can have."""
-        n_max = self.sizes[1] if self.grid is None else int(self.grid.sum())
-        return n_max // self.pieces[0]
+        if self.grid is not None:
+            return int(self.grid.sum()) // self.pieces[0]
+        assert self.sizes is not None
+        return max(self.sizes[1] // self.pieces[0], 2)  # K cut to N/2 on small shapes: n = 2
 
 
 @dataclass(frozen=True, eq=False)

@@ -101,6 +101,10 @@ def test_draws_cover_every_group_within_its_ranges():
         if tasks.groups[g].sizes is not None:
             assert 60 <= task.size <= 200 and task.piece_size >= 2
     assert seen == {0, 1, 2}
+    small = parse_tasks("random:4-11:6-8")  # K is cut to N/2 here
+    for _ in range(20):
+        _, task = small.draw(rng)
+        assert 2 <= task.pieces <= task.size // 2 and task.piece_size <= small.max_piece_size()
     first = [(t.shape_name, t.pieces) for t in tasks.validation_tasks(7)]
     assert first == [(t.shape_name, t.pieces) for t in tasks.validation_tasks(7)]  # fixed
     assert first[0] == ("cube4", 7)
