@@ -16,15 +16,15 @@ case "$name" in
   *) echo "unknown task $name" >&2; exit 2 ;;
 esac
 # 4^3 K=7 is easy enough that even the untrained search at 64 simulations finds 5 valid assemblies in the
-# protocol's first batch of 64 episodes; at 16 simulations a batch costs a quarter and what the network
-# learned decides how many batches it takes.
+# protocol's first batch of 64 episodes; at 4 simulations a batch costs a sixteenth and what the network
+# learned decides how many batches it takes (docs/benchmarks.md: 4, 16 and 256 compared).
 simulations=64
-if [ "$name" = cube4-k7 ]; then simulations=16; fi
+if [ "$name" = cube4-k7 ]; then simulations=4; fi
 logdir="runs/$name"
 if [ "$resume" = "--resume" ]; then
   .venv/bin/rllock train --resume "$logdir" --minutes "$minutes"
 else
-  # Shared by every task: 64 simulations but for cube4-k7 (a quarter of the paper's 256, for 4x the
+  # Shared by every task: 64 simulations (4 for cube4-k7) (a quarter of the paper's 256, for 4x the
   # self-play episodes on 2 cores), the smallest canvas that fits the shape, self-imitation of successful episodes, and a
   # 64-episode validation every 10 minutes that picks the checkpoint to ship.
   .venv/bin/rllock train --shape "$shape" --pieces "$pieces" --minutes "$minutes" --logdir "$logdir" \
