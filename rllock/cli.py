@@ -393,9 +393,16 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
 def cmd_bench_transfer(args: argparse.Namespace) -> int:
     from functools import partial
 
-    from rllock.transfer import bench_transfer_task, format_transfer_table, parse_transfer_tasks, row_json
+    from rllock.transfer import (
+        bench_transfer_task,
+        format_transfer_table,
+        multitask_meta,
+        parse_transfer_tasks,
+        row_json,
+    )
 
     tasks = parse_transfer_tasks(args.tasks)
+    multitask_meta(args.checkpoint)  # a wrong checkpoint is an error before any work
     bench_one = partial(bench_transfer_task, args.checkpoint)
     return _task_table(args, "transfer", tasks, bench_one, format_transfer_table, row_json)
 

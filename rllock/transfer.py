@@ -61,14 +61,20 @@ class TransferRow:
     solver: Arm
 
 
-def bench_transfer_task(
-    checkpoint: str, task: TransferTask, *, count: int, batch: int, time_limit: float, seed: int
-) -> TransferRow:
+def multitask_meta(checkpoint: str) -> dict:
+    """The metadata of a multi-task checkpoint; any other is a clear error."""
     meta = read_meta(find_step_dir(checkpoint))
     if not is_multitask(meta):
         raise RLLockError(
             f"checkpoint {checkpoint} was trained for one task; bench transfer needs --tasks runs"
         )
+    return meta
+
+
+def bench_transfer_task(
+    checkpoint: str, task: TransferTask, *, count: int, batch: int, time_limit: float, seed: int
+) -> TransferRow:
+    meta = multitask_meta(checkpoint)
     warm_process(task.shape, task.pieces)
     t = make_task(task.shape, task.pieces, meta["task"]["removal"])
     seen = trained_on(meta, t)
