@@ -81,12 +81,7 @@ def _setup(
         return dataclasses.replace(config, net=net), None, tasks, tasks.identity(), init
     assert config.shape is not None and config.pieces is not None
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    if init is not None and max(task.topology.dims) > (net.canvas or 0):
-        raise RLLockError(
-            f"shape {task.shape_name} {task.topology.dims} does not fit the {net.canvas}^3 canvas of the "
-            f"--init checkpoint {config.init}"
-        )
-    net = fit_canvas(task, net)
+    net = fit_canvas(task, net, None if init is None else f"the --init checkpoint {config.init}")
     return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas), init
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import hashlib
 import json
 import os
 import platform
@@ -28,7 +27,7 @@ import orbax.checkpoint as ocp
 from rllock.config import TrainConfig, from_flat, from_json
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
-from rllock.shapes import from_xfastest, to_xfastest
+from rllock.shapes import from_xfastest, grid_sha256, to_xfastest
 from rllock.verifier import CHECKER_VERSION
 
 FORMAT = "rllock-checkpoint"
@@ -143,9 +142,7 @@ def task_identity(task: Task, canvas: int) -> dict:
         "shape": task.shape_name,
         "dimensions": list(grid.shape),
         "grid": [int(v) for v in to_xfastest(grid.astype(np.int8))],
-        "grid_sha256": hashlib.sha256(
-            np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")
-        ).hexdigest(),
+        "grid_sha256": grid_sha256(grid),
         "pieces": task.pieces,
         "removal": task.removal,
         "canvas": canvas,

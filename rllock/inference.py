@@ -25,7 +25,7 @@ from rllock.env import Task, assembly_key, final_labels
 from rllock.errors import RLLockError
 from rllock.mcts import Episode, Player, derive_seed, play_groups
 from rllock.methods import players
-from rllock.network import init_params
+from rllock.network import fit_canvas, init_params
 from rllock.verifier import CHECKER_VERSION
 
 log = logging.getLogger(__name__)
@@ -69,11 +69,7 @@ def is_multitask(meta: dict) -> bool:
 
 def check_fits(task: Task, saved: dict, where: Path) -> None:
     """A task a multi-task checkpoint can serve: on its canvas, with its removal mode and checkers."""
-    if max(task.topology.dims) > saved["canvas"]:
-        raise RLLockError(
-            f"shape {task.shape_name} {task.topology.dims} does not fit the {saved['canvas']}^3 canvas of "
-            f"checkpoint {where}"
-        )
+    fit_canvas(task, NetConfig(canvas=saved["canvas"]), f"checkpoint {where}")
     for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
         if saved.get(key) != here:
             raise RLLockError(f"checkpoint {where} was made for {key} {saved.get(key)!r}, not {here!r}")

@@ -13,8 +13,9 @@ and, for networks that serve many tasks (`NetConfig.task_planes`, `rllock train 
 task's network never needs to be told:
   7  piece size n / 32 on every voxel of the shape (n = floor(N / K); the shape's size N is plane 0's sum)
   8  pieces     K / 32 on every voxel of the shape
-The planes are computed from canvas labels (`to_canvas`: -1 off the shape), the form in which a
-multi-task replay buffer stores states of different shapes side by side.
+`encode_batch` writes them for one task's states (the search); `encode_canvas` computes the same planes
+from canvas labels (`to_canvas`: -1 off the shape), the form in which a multi-task replay buffer stores
+states of different shapes side by side.
 Policy: the U-Net gives one logit per canvas voxel; a candidate chunk's logit is the mean of its voxels'
 logits (so the policy generalises across the chunks sampled at a node, whatever their number), and
 padding candidates (fewer than M_c accepted) are masked. Value: global average of the bottleneck
@@ -44,16 +45,17 @@ def planes_of(config: NetConfig) -> int:
     return PLANES + (TASK_PLANES if config.task_planes else 0)
 
 
-def fit_canvas(task: Task, config: NetConfig) -> NetConfig:
+def fit_canvas(task: Task, config: NetConfig, canvas_of: str | None = None) -> NetConfig:
     """`config` with a concrete canvas for `task` (the smallest that fits, unless one is set); a shape
-    that does not fit the canvas is an error."""
+    that does not fit the canvas is an error. `canvas_of`: where a fixed canvas came from (a
+    checkpoint), for that error."""
     fitted = config.fitted(task.topology.dims)
     canvas = fitted.canvas
     assert canvas is not None
     if max(task.topology.dims) > canvas:
+        where = f" of {canvas_of}" if canvas_of else "; use a larger --canvas"
         raise RLLockError(
-            f"shape {task.shape_name} {task.topology.dims} does not fit the {canvas}^3 canvas; "
-            f"use a larger --canvas"
+            f"shape {task.shape_name} {task.topology.dims} does not fit the {canvas}^3 canvas{where}"
         )
     if canvas % config.levels_step() != 0:
         raise RLLockError(f"the canvas side must be a multiple of {config.levels_step()}, got {canvas}")

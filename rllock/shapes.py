@@ -12,6 +12,7 @@ are the only places that know this.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from pathlib import Path
 
@@ -70,6 +71,11 @@ def tube() -> np.ndarray:
     grid = np.ones((7, 7, 4), dtype=bool)
     grid[2:5, 2:5, :] = False
     return grid
+
+
+def grid_sha256(grid: np.ndarray) -> str:
+    """A shape's fingerprint: what checkpoints record to know the shape they were trained on."""
+    return hashlib.sha256(np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")).hexdigest()
 
 
 def builtin_shape(name: str) -> np.ndarray | None:

@@ -10,7 +10,6 @@ random shapes, K is kept to at most N/2, so that a piece has at least 2 voxels).
 
 from __future__ import annotations
 
-import hashlib
 import re
 from dataclasses import dataclass
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
-from rllock.shapes import crop, load_shape
+from rllock.shapes import crop, grid_sha256, load_shape
 from rllock.verifier import CHECKER_VERSION
 
 DEFAULT_CANVAS = 8  # the paper's canvas; random shapes are grown to fit it
@@ -82,18 +81,11 @@ class TaskSet:
         return {
             "tasks": self.spec,
             "groups": [group.spec for group in self.groups],
-            "shapes_sha256": [_grid_hash(group.grid) for group in self.groups],
+            "shapes_sha256": [None if g.grid is None else grid_sha256(g.grid) for g in self.groups],
             "removal": self.removal,
             "canvas": self.canvas,
             "checker_version": CHECKER_VERSION,
         }
-
-
-def _grid_hash(grid: np.ndarray | None) -> str | None:
-    if grid is None:
-        return None
-    grid = np.asarray(grid, bool)
-    return hashlib.sha256(np.ascontiguousarray(grid).tobytes() + bytes(str(grid.shape), "ascii")).hexdigest()
 
 
 def _range(text: str, what: str, item: str) -> tuple[int, int]:

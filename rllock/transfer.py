@@ -19,6 +19,7 @@ from rllock.env import Task, make_task
 from rllock.errors import RLLockError
 from rllock.inference import is_multitask, load_policy, untrained_like
 from rllock.paper import Arm, arm_cell, arm_json, policy_arm, solver_arm, warm_process
+from rllock.shapes import grid_sha256
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,
 # on the paper's 8^3 canvas, two piece counts each.
@@ -91,7 +92,7 @@ def bench_transfer_task(
 
 def trained_on(meta: dict, task: Task) -> bool:
     """Whether `task`'s shape is one of the named training shapes of a multi-task checkpoint."""
-    return task_identity(task, 0)["grid_sha256"] in meta["task"]["shapes_sha256"]
+    return grid_sha256(task.topology.grid) in meta["task"]["shapes_sha256"]
 
 
 def row_json(row: TransferRow) -> dict:
