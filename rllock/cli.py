@@ -466,8 +466,9 @@ def cmd_pretrained(args: argparse.Namespace) -> int:
     ]
     for r in rows:
         commit = (r["commit"] or "-")[:12]
+        minutes = f"{r['training_minutes']} from {r['init']}" if r["init"] else r["training_minutes"]
         lines.append(
-            f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {r['training_minutes']} | "
+            f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {minutes} | "
             f"{r['learner_steps']} | {rate(r)} | {commit} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")

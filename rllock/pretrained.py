@@ -36,6 +36,7 @@ def describe(name: str, folder: Path | None = None) -> dict:
         "canvas": task["canvas"],
         "simulations": config["mcts"]["simulations"],
         "training_minutes": round(counters.get("seconds", 0.0) / 60, 1),
+        "init": config.get("init"),  # the checkpoint it was fine-tuned from; its training is not counted
         "learner_steps": meta["step"],
         "validation_success": validation.get("success_rate"),
         "validation_episodes": validation.get("episodes"),

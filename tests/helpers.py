@@ -43,7 +43,7 @@ def untrained_episodes(space, mcts, batch: int, seed: int) -> tuple[Task, list]:
 
 
 def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock", step: int = 7,
-             seconds: float = 600.0, validation: dict | None = None):  # fmt: skip
+             seconds: float = 600.0, validation: dict | None = None, init: str | None = None):  # fmt: skip
     """A training run folder with one best checkpoint of a fresh learner, as `rllock train` writes it
     (params, optimizer state, provenance); returns the learner."""
     import jax
@@ -54,7 +54,7 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
 
     task = make_task(shape, pieces)
     learner = Learner(task, net, LearnerConfig(), jax.random.PRNGKey(3), method)
-    config = TrainConfig(shape=shape, pieces=pieces, method=method, net=net, mcts=mcts)
+    config = TrainConfig(shape=shape, pieces=pieces, method=method, net=net, mcts=mcts, init=init)
     mngr = ckpt.manager(run / "best", keep=1)
     counters = {"seconds": seconds, "episodes": 40}
     ckpt.save(mngr, step, learner.state(), ckpt.meta(to_json(config), task, step, validation, counters,

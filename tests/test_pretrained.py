@@ -13,6 +13,7 @@ from helpers import run_cli, save_run
 
 from rllock import checkpoint as ckpt
 from rllock import pretrained
+from rllock.cli import main
 from rllock.env import make_task
 from rllock.errors import RLLockError
 from rllock.inference import is_multitask, load_policy
@@ -59,6 +60,20 @@ def test_a_shipped_name_resolves_where_no_such_path_exists(run, tmp_path, monkey
         load_policy("box-k4")
     with pytest.raises(RLLockError, match=r"no such checkpoint directory or shipped checkpoint.*box-k4"):
         load_policy("cube9-k3")
+
+
+def test_a_fine_tuned_checkpoint_lists_what_it_started_from(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(ckpt, "SHIPPED", tmp_path / "shipped")
+    save_run(tmp_path / "scratch", "box:4x4x2", 4, net=NET, mcts=MCTS, seconds=1200.0)
+    save_run(tmp_path / "tuned", "box:4x4x2", 5, net=NET, mcts=MCTS, seconds=300.0, init="general")
+    pretrained.ship(tmp_path / "scratch", "box-k4")
+    pretrained.ship(tmp_path / "tuned", "box-k5")
+    assert pretrained.describe("box-k4")["init"] is None
+    assert pretrained.describe("box-k5")["init"] == "general"
+    assert main(["pretrained"]) == 0
+    out = capsys.readouterr().out
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ")[4] for line in out.splitlines()[2:]}
+    assert rows == {"box-k4": "20.0", "box-k5": "5.0 from general"}
 
 
 def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
