@@ -460,16 +460,16 @@ def cmd_pretrained(args: argparse.Namespace) -> int:
         return f"{100 * row['validation_success']:.1f}% of {row['validation_episodes']}"
 
     lines = [
-        "| name | task | canvas | simulations | training (min) | learner steps | validation success "
-        "| commit |",
-        "|---|---|---|---|---|---|---|---|",
+        "| name | task | canvas | simulations | training (min) | trained on | learner steps "
+        "| validation success | commit |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         commit = (r["commit"] or "-")[:12]
         minutes = f"{r['training_minutes']} from {r['init']}" if r["init"] else r["training_minutes"]
         lines.append(
             f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {minutes} | "
-            f"{r['learner_steps']} | {rate(r)} | {commit} |"
+            f"{pretrained.machine_summary(r['machine'])} | {r['learner_steps']} | {rate(r)} | {commit} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
     return 0

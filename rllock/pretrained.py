@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -44,6 +45,16 @@ def describe(name: str, folder: Path | None = None) -> dict:
         "machine": sessions[0]["machine"] if sessions else None,
         "sessions": sessions,
     }
+
+
+def machine_summary(machine: str | None) -> str:
+    """The training machine in a table cell: '16 x Intel Xeon, gpu (NVIDIA H100 80GB HBM3)' gives
+    '16 cores, NVIDIA H100 80GB HBM3'; training minutes mean little without it."""
+    match = re.fullmatch(r"(\d+) x .*, (\w+) \((.*)\)", machine or "")
+    if match is None:
+        return machine or "-"
+    cores, platform, kind = match.groups()
+    return f"{cores} cores" if platform == "cpu" else f"{cores} cores, {kind}"
 
 
 def ship(source: Path, name: str, *, into: Path | None = None) -> Path:

@@ -115,3 +115,11 @@ def test_bench_paper_runs_the_three_arms_beside_the_papers_figures(tmp_path, mon
 def test_bench_paper_refuses_an_unknown_task():
     code, _, err = run_cli("bench", "paper", "--tasks", "cube4-k6")
     assert code == 2 and "unknown task 'cube4-k6'" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_pretrained_table_names_the_training_machine_briefly():
+    assert pretrained.machine_summary("2 x AMD EPYC, cpu (cpu)") == "2 cores"
+    gpu = "16 x Intel(R) Xeon(R) Processor, gpu (NVIDIA H100 80GB HBM3)"
+    assert pretrained.machine_summary(gpu) == "16 cores, NVIDIA H100 80GB HBM3"
+    assert pretrained.machine_summary(None) == "-"
+    assert pretrained.machine_summary("a laptop") == "a laptop"  # an unknown form is shown as it is
