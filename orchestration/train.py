@@ -361,10 +361,15 @@ class _Run:
     def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
         estimate = self._validation_estimate()
         if not self.schedule.fits(now, estimate, final=final):
+            need = (
+                "no self-play batch has finished yet to time it"
+                if estimate is None
+                else f"about {estimate:.0f} s of the budget would be needed"
+            )
             log.info(
-                "%svalidation skipped: about %s s of the budget would be needed, %.0f s are left",
+                "%svalidation skipped: %s, %.0f s are left",
                 "final " if final else "",
-                "?" if estimate is None else f"{estimate:.0f}",
+                need,
                 max(0.0, self.schedule.deadline - now),
             )
             return
