@@ -75,6 +75,10 @@ def _setup(
     net = config.net
     if config.init is not None and not resume:
         _, _, net, _, init = load_network(config.init)
+        if config.net.canvas is not None:
+            # The U-Net's weights do not depend on the canvas side, so a generalist trained on a large
+            # canvas can be fine-tuned on the smallest one that fits the task, where search is cheaper.
+            net = dataclasses.replace(net, canvas=config.net.canvas)
     if config.tasks is not None:
         tasks = parse_tasks(config.tasks, canvas=net.canvas, removal=config.removal, step=net.levels_step())
         net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)

@@ -106,7 +106,8 @@ class TrainConfig:
     many voxels per draw; rllock.tasks). Replaces --shape and --pieces."""
     init: str | None = None
     """Start from this checkpoint's network (a run's log directory or a shipped name, e.g. general:
-    fine-tuning); its canvas and input planes are used."""
+    fine-tuning); its network size and input planes are used, and its canvas unless --canvas is given
+    (the weights do not depend on the canvas side)."""
     removal: str = "straight"
     """straight: one axis slide per piece; path: DESIA's multi-move test."""
     method: str = "rl-lock"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -294,6 +296,24 @@ def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
     assert learner.step == 0
+
+
+def test_init_fine_tunes_a_generalist_on_a_smaller_canvas(tmp_path):
+    """--canvas with --init: the same weights on the smallest canvas that fits the task."""
+    saved = save_multitask_run(
+        tmp_path / "run", "cube3:3-4", net=dataclasses.replace(MULTI_NET, canvas=6), mcts=MULTI_MCTS
+    )
+    small = TrainConfig(shape="box:4x3x2", pieces=4, init=str(tmp_path / "run"), net=NetConfig(canvas=4))
+    config, task, _, identity, init = _setup(small)
+    assert task is not None and config.net.canvas == identity["canvas"] == 4
+    assert config.net.features == (4, 8) and config.net.task_planes
+    learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
+    learner.start_from(init)
+    for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
+        np.testing.assert_array_equal(a, b)
+    assert _setup(dataclasses.replace(small, net=NetConfig()))[0].net.canvas == 6
+    with pytest.raises(RLLockError, match="does not fit"):
+        _setup(dataclasses.replace(small, net=NetConfig(canvas=2)))
 
 
 def test_transfer_tasks_and_ratios():
