@@ -246,7 +246,7 @@ def _load_for(args: argparse.Namespace):
     against --shape and --pieces when named), or the named task for a multi-task checkpoint."""
     from rllock.checkpoint import find_step_dir, read_meta
     from rllock.env import make_task
-    from rllock.inference import is_multitask, load_policy
+    from rllock.inference import is_multitask, load_policy, with_simulations
 
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
@@ -258,8 +258,10 @@ def _load_for(args: argparse.Namespace):
             )
         removal = args.removal or meta["task"]["removal"]
         task = make_task(args.shape, args.pieces, removal, resolution=args.resolution)
-        return load_policy(args.checkpoint, task=task)
-    return load_policy(args.checkpoint, _expected_task(args, meta["task"]))
+        return with_simulations(load_policy(args.checkpoint, task=task), args.simulations)
+    return with_simulations(
+        load_policy(args.checkpoint, _expected_task(args, meta["task"])), args.simulations
+    )
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
@@ -376,9 +378,11 @@ def _emit_table(args: argparse.Namespace, out: Path | None, table: str, rows: li
 def _task_table(args: argparse.Namespace, name: str, tasks: list, bench_one, format_table, row_json) -> int:
     """A table bench (paper, transfer): `bench_one(task, **protocol)` per task, then the table."""
     out = _table_out(args)
-    protocol = dict(count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed)
-    rows = [bench_one(task, **protocol) for task in tqdm(tasks, desc=f"bench {name}", unit="task")]
-    table = format_table(rows, args.time_limit, " ".join(["rllock", *sys.argv[1:]]))
+    protocol = dict(count=args.count, batch=args.batch, time_limit=args.time_limit)
+    rows = [
+        bench_one(task, seed=args.seed, **protocol) for task in tqdm(tasks, desc=f"bench {name}", unit="task")
+    ]
+    table = format_table(rows, protocol, " ".join(["rllock", *sys.argv[1:]]))
     _emit_table(args, out, table, [row_json(r) for r in rows])
     return 0
 
@@ -403,7 +407,7 @@ def cmd_bench_transfer(args: argparse.Namespace) -> int:
 
     tasks = parse_transfer_tasks(args.tasks)
     multitask_meta(args.checkpoint)  # a wrong checkpoint is an error before any work
-    bench_one = partial(bench_transfer_task, args.checkpoint)
+    bench_one = partial(bench_transfer_task, args.checkpoint, simulations=args.simulations)
     return _task_table(args, "transfer", tasks, bench_one, format_transfer_table, row_json)
 
 
@@ -524,6 +528,15 @@ def cmd_bench_selfplay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_simulations_arg(p: argparse.ArgumentParser, arms: str = "") -> None:
+    p.add_argument(
+        "--simulations",
+        type=int,
+        default=None,
+        help=f"search simulations per decision{arms} (default: the checkpoint's own, as it was trained)",
+    )
+
+
 def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--checkpoint",
@@ -537,6 +550,7 @@ def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--time-limit", type=_positive_float, default=3600.0, help="seconds")
     p.add_argument("--seed", type=int, default=0)
+    _add_simulations_arg(p)
     p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
     p.add_argument(
         "--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K"
@@ -663,6 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="SHAPE:K list, e.g. sofa:12,cube4:9 (default: the held-out set, rllock.transfer.HELD_OUT)",
     )
+    _add_simulations_arg(p, " in the zero-shot and untrained arms")
     _add_table_bench_args(p, "arm")
     p.set_defaults(func=cmd_bench_transfer)
 

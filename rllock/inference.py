@@ -9,6 +9,7 @@ count give the same episodes; on Ray, which rounds finish first also decides whi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -93,6 +94,19 @@ def load_policy(path: str | Path, expect: dict | None = None, *, task: Task | No
             ckpt.check_same_task(meta["task"], expect, step_dir)
         task = ckpt.task_from_identity(meta["task"])
     return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
+
+
+def with_simulations(policy: Policy, simulations: int | None) -> Policy:
+    """`policy` searching with `simulations` per decision (None: the number it was trained with). More
+    simulations cost proportionally more per batch and can find far more valid assemblies per episode
+    than the training budget does (docs/benchmarks.md)."""
+    if simulations is None:
+        return policy
+    if policy.method == "ppo":
+        raise RLLockError("--simulations: a ppo checkpoint runs no search")
+    if simulations < 1:
+        raise RLLockError(f"--simulations must be at least 1, got {simulations}")
+    return dataclasses.replace(policy, mcts=dataclasses.replace(policy.mcts, simulations=simulations))
 
 
 def untrained_like(policy: Policy, seed: int) -> Policy:

@@ -184,7 +184,12 @@ def row_json(row: PaperRow) -> dict:
     }
 
 
-def format_paper_table(rows: list[PaperRow], time_limit: float, command: str) -> str:
+def protocol_note(count: int, batch: int, time_limit: float) -> str:
+    """What a table's protocol was, for its caption."""
+    return f"{count} wanted, batches of {batch}, {time_limit:.0f} s limit per arm"
+
+
+def format_paper_table(rows: list[PaperRow], protocol: dict, command: str) -> str:
     """The markdown table: seconds per valid assembly, with the valid count, beside the paper's."""
     arm = arm_cell
 
@@ -196,8 +201,8 @@ def format_paper_table(rows: list[PaperRow], time_limit: float, command: str) ->
     lines = [
         f"    {command}",
         "",
-        "Seconds per valid assembly (valid found in brackets; 5 wanted, batches of 64, "
-        f"{time_limit:.0f} s limit per arm). Trained: the shipped checkpoint, load and compile included.",
+        f"Seconds per valid assembly (valid found in brackets; {protocol_note(**protocol)}). Trained: the "
+        "shipped checkpoint, load and compile included.",
         "",
         "| task | trained | untrained | search solver | paper RL-Lock | paper DESIA |",
         "|---|---|---|---|---|---|",

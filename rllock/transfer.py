@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from rllock.checkpoint import find_step_dir, read_meta, shipped_names, task_identity
 from rllock.env import Task, make_task
 from rllock.errors import RLLockError
-from rllock.inference import is_multitask, load_policy, untrained_like
-from rllock.paper import Arm, arm_cell, arm_json, policy_arm, solver_arm, warm_process
+from rllock.inference import is_multitask, load_policy, untrained_like, with_simulations
+from rllock.paper import Arm, arm_cell, arm_json, policy_arm, protocol_note, solver_arm, warm_process
 from rllock.shapes import grid_sha256
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,
@@ -60,6 +60,8 @@ class TransferRow:
     untrained: Arm
     per_task: Arm | None  # None: no shipped checkpoint for this task
     solver: Arm
+    simulations: int  # per decision, in the zero-shot and untrained arms
+    per_task_simulations: int | None
 
 
 def multitask_meta(checkpoint: str) -> dict:
@@ -73,21 +75,35 @@ def multitask_meta(checkpoint: str) -> dict:
 
 
 def bench_transfer_task(
-    checkpoint: str, task: TransferTask, *, count: int, batch: int, time_limit: float, seed: int
+    checkpoint: str,
+    task: TransferTask,
+    *,
+    count: int,
+    batch: int,
+    time_limit: float,
+    seed: int,
+    simulations: int | None = None,
 ) -> TransferRow:
+    """One row; `simulations` (None: the checkpoint's own) sets the search of the zero-shot and untrained
+    arms, the per-task checkpoint searches as it was trained."""
     meta = multitask_meta(checkpoint)
     warm_process(task.shape, task.pieces)
     t = make_task(task.shape, task.pieces, meta["task"]["removal"])
     seen = trained_on(meta, t)
     protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
-    zero, policy = policy_arm(lambda: load_policy(checkpoint, task=t), **protocol)
+    zero, policy = policy_arm(
+        lambda: with_simulations(load_policy(checkpoint, task=t), simulations), **protocol
+    )
     untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
-    per_task = None
+    per_task, own = None, None
     if task.name in shipped_names():
         expect = task_identity(t, read_meta(find_step_dir(task.name))["task"]["canvas"])
-        per_task, _ = policy_arm(lambda: load_policy(task.name, expect), **protocol)
+        per_task, own = policy_arm(lambda: load_policy(task.name, expect), **protocol)
     solver = solver_arm(t, count=count, time_limit=time_limit, seed=seed)
-    return TransferRow(task, seen, zero, untrained, per_task, solver)
+    own_simulations = None if own is None else own.mcts.simulations
+    return TransferRow(
+        task, seen, zero, untrained, per_task, solver, policy.mcts.simulations, own_simulations
+    )
 
 
 def trained_on(meta: dict, task: Task) -> bool:
@@ -104,6 +120,7 @@ def row_json(row: TransferRow) -> dict:
         "untrained": arm(row.untrained),
         "per_task": arm(row.per_task),
         "solver": arm(row.solver),
+        "simulations": {"zero_shot": row.simulations, "per_task": row.per_task_simulations},
         "zero_shot_over_untrained": ratio(row.zero_shot, row.untrained),
         "zero_shot_over_per_task": ratio(row.zero_shot, row.per_task),
     }
@@ -119,21 +136,28 @@ def ratio(a: Arm, b: Arm | None) -> str | None:
     return f"{a.time_per_valid_s / b.time_per_valid_s:.2f}"
 
 
-def format_transfer_table(rows: list[TransferRow], time_limit: float, command: str) -> str:
+def simulations(row: TransferRow) -> str:
+    """The table's simulations cell: the zero-shot and untrained arms', then the per-task checkpoint's."""
+    own = "" if row.per_task_simulations is None else f" / {row.per_task_simulations}"
+    return f"{row.simulations}{own}"
+
+
+def format_transfer_table(rows: list[TransferRow], protocol: dict, command: str) -> str:
     arm = arm_cell
     lines = [
         f"    {command}",
         "",
-        "Seconds per valid assembly (valid found in brackets; 5 wanted, batches of 64, "
-        f"{time_limit:.0f} s limit per arm), loading and compiling included.",
+        f"Seconds per valid assembly (valid found in brackets; {protocol_note(**protocol)}), loading and "
+        "compiling included.",
         "",
-        "| task | shape in training | zero-shot | untrained | zero-shot / untrained | per-task checkpoint "
-        "| zero-shot / per-task | search solver |",
-        "|---|---|---|---|---|---|---|---|",
+        "| task | shape in training | simulations | zero-shot | untrained | zero-shot / untrained "
+        "| per-task checkpoint | zero-shot / per-task | search solver |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r.task.shape} K={r.task.pieces} | {'yes' if r.seen else 'no'} | {arm(r.zero_shot)} | "
+            f"| {r.task.shape} K={r.task.pieces} | {'yes' if r.seen else 'no'} | {simulations(r)} | "
+            f"{arm(r.zero_shot)} | "
             f"{arm(r.untrained)} | {ratio(r.zero_shot, r.untrained) or '-'} | {arm(r.per_task)} | "
             f"{ratio(r.zero_shot, r.per_task) or '-'} | {arm(r.solver)} |"
         )

@@ -107,8 +107,10 @@ def test_bench_paper_runs_the_three_arms_beside_the_papers_figures(tmp_path, mon
     assert row.solver.valid == 1  # the solver finds a 4^3 K=7 assembly in well under a second
     doc = row_json(row)
     assert doc["paper_rllock_s"] == 0.05 * 60 and doc["solver"]["time_per_valid_s"] == row.solver.seconds
-    lines = format_paper_table([row], 1, "rllock bench paper --tasks cube4-k7").splitlines()
+    protocol = dict(count=1, batch=2, time_limit=1)
+    lines = format_paper_table([row], protocol, "rllock bench paper --tasks cube4-k7").splitlines()
     assert lines[0].strip() == "rllock bench paper --tasks cube4-k7"
+    assert "1 wanted, batches of 2, 1 s limit per arm" in lines[2]
     assert any(line.startswith("| cube4-k7 | ") and line.endswith("| 3.0 | 0.6 |") for line in lines)
 
 

@@ -32,7 +32,7 @@ from rllock.cli import main
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
 from rllock.env import State, make_task
 from rllock.errors import RLLockError
-from rllock.inference import load_policy
+from rllock.inference import load_policy, with_simulations
 from rllock.network import (
     TASK_SCALE,
     canvas_index,
@@ -45,7 +45,14 @@ from rllock.network import (
 from rllock.paper import Arm
 from rllock.shapes import crop, is_connected
 from rllock.tasks import parse_tasks, random_shape
-from rllock.transfer import TransferTask, bench_transfer_task, parse_transfer_tasks, ratio, trained_on
+from rllock.transfer import (
+    TransferTask,
+    bench_transfer_task,
+    format_transfer_table,
+    parse_transfer_tasks,
+    ratio,
+    trained_on,
+)
 from rllock.verifier import verify_labels
 
 SPEC = "cube4:6-9,box:6x5x4:8-12,random:60-200:6-20"
@@ -264,7 +271,7 @@ def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_neve
     out = tmp_path / "out"
     code, stdout, err = run_cli(
         "generate", "--checkpoint", str(tmp_path / "run"), "--shape", "box:4x3x2", "--pieces", "3",
-        "--count", "2", "--batch", "16", "--time-limit", "60", "--out", str(out),
+        "--count", "2", "--batch", "16", "--time-limit", "60", "--simulations", "6", "--out", str(out),
     )  # fmt: skip
     assert code == 0, err
     written = sorted(out.glob("assembly_*"))
@@ -272,8 +279,15 @@ def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_neve
     for folder in written:
         labels, meta = read_assembly(folder)
         assert verify_labels(labels).valid and labels.shape == (4, 3, 2) and labels.max() == 3
+        assert meta["method"]["simulations"] == 6 != MULTI_MCTS.simulations
     assert main(["generate", "--checkpoint", str(tmp_path / "run"), "--out", str(tmp_path / "o2")]) == 2
     assert "serves many tasks" in capsys.readouterr().err.strip().splitlines()[-1]
+    run = ["generate", "--checkpoint", str(tmp_path / "run"), "--shape", "cube3", "--pieces", "3"]
+    assert main([*run, "--simulations", "0", "--out", str(tmp_path / "o3")]) == 2
+    assert capsys.readouterr().err.strip() == "rllock: error: --simulations must be at least 1, got 0"
+    policy = load_policy(tmp_path / "run", task=make_task("cube3", 3))
+    with pytest.raises(RLLockError, match="runs no search"):
+        with_simulations(dataclasses.replace(policy, method="ppo"), 8)
     with pytest.raises(RLLockError, match="does not fit"):
         load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3))
 
@@ -334,9 +348,12 @@ def test_transfer_tasks_and_ratios():
 def test_bench_transfer_runs_every_arm_and_knows_which_shapes_were_trained(tmp_path):
     save_multitask_run(tmp_path / "run", "box:4x3x2:3-4,random:12-30:3-5", net=MULTI_NET, mcts=MULTI_MCTS)
     protocol = dict(count=1, batch=8, time_limit=30, seed=0)
-    row = bench_transfer_task(str(tmp_path / "run"), TransferTask("box:3x3x2", 2), **protocol)
+    row = bench_transfer_task(str(tmp_path / "run"), TransferTask("box:3x3x2", 2), simulations=2, **protocol)
     assert not row.seen and row.per_task is None
+    assert row.simulations == 2 != MULTI_MCTS.simulations and row.per_task_simulations is None
     assert row.zero_shot.valid == row.untrained.valid == row.solver.valid == 1
+    table = format_transfer_table([row], dict(count=1, batch=8, time_limit=30), "rllock bench transfer")
+    assert "1 wanted, batches of 8, 30 s limit per arm" in table and "| box:3x3x2 K=2 | no | 2 |" in table
     meta = read_meta(find_step_dir(tmp_path / "run"))
     assert trained_on(meta, make_task("box:4x3x2", 4)) and not trained_on(meta, make_task("box:3x4x2", 4))
     single = tmp_path / "single"
