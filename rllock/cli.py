@@ -360,6 +360,49 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_success(args: argparse.Namespace) -> int:
+    from rllock.inference import success_rate
+
+    # Every checkpoint is loaded (and checked) before any is played: a bad one fails at once.
+    policies = [_load_for(argparse.Namespace(**{**vars(args), "checkpoint": c})) for c in args.checkpoint]
+    rows = []
+    for policy in policies:
+        r = success_rate(policy, episodes=args.episodes, batch=args.batch, seed=args.seed)
+        low, high = r.interval()
+        rows.append(
+            {
+                "checkpoint": policy.source,
+                "step": policy.step,
+                "task": f"{policy.task.shape_name} K={policy.task.pieces}",
+                "canvas": policy.net.canvas,
+                "simulations": policy.mcts.simulations,
+                "valid": r.valid,
+                "episodes": r.episodes,
+                "success_rate": r.rate,
+                "interval_95": [low, high],
+                "seconds": r.seconds,
+            }
+        )
+        log.info("%s: %d valid of %d episodes in %.1f s", policy.source, r.valid, r.episodes, r.seconds)
+    if args.json:
+        sys.stdout.write(json.dumps(rows) + "\n")
+        return 0
+    lines = [
+        f"success rate (batches of {args.batch}, seed {args.seed}, the same episodes' seeds for each):",
+        "| checkpoint | step | task | canvas | simulations | valid / episodes | success | 95% interval | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        low, high = r["interval_95"]
+        lines.append(
+            f"| {r['checkpoint']} | {r['step']} | {r['task']} | {r['canvas']} | {r['simulations']} | "
+            f"{r['valid']} / {r['episodes']} | {100 * r['success_rate']:.1f}% | "
+            f"{100 * low:.1f}-{100 * high:.1f}% | {r['seconds']:.0f} |"
+        )
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
 def _table_out(args: argparse.Namespace) -> Path | None:
     """The --out file of a table bench, checked before the bench runs so that its results are not lost."""
     out = Path(args.out) if args.out else None
@@ -685,6 +728,27 @@ def build_parser() -> argparse.ArgumentParser:
     _add_checkpoint_args(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_learning)
+
+    p = bench.add_parser(
+        "success",
+        help="checkpoints' success rates over many episodes, with 95%% intervals: a large validation",
+    )
+    p.add_argument(
+        "--checkpoint",
+        action="append",
+        required=True,
+        help="a run's log directory, one checkpoint directory or a shipped name; repeat to compare",
+    )
+    p.add_argument("--episodes", type=int, default=1024, help="at least this many episodes per checkpoint")
+    p.add_argument("--batch", type=int, default=64, help="episodes per batch")
+    p.add_argument("--seed", type=int, default=0)
+    _add_simulations_arg(p)
+    p.add_argument("--shape", default=None, help="for a multi-task checkpoint; else fail unless its own")
+    p.add_argument("--pieces", type=int, default=None, help="for a multi-task checkpoint; else as --shape")
+    p.add_argument("--removal", choices=REMOVAL_MODES, default=None)
+    p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_success)
 
     p = bench.add_parser("selfplay", help="self-play episodes and simulations per second for actor counts")
     p.add_argument("--actors", default="1,2", help="comma-separated actor counts")

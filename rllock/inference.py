@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -248,3 +249,40 @@ def generate(
         collector.take(play_round(group_searchers, policy, seed, round_), time.perf_counter() - t0)
         round_ += 1
     return collector.result(time.perf_counter() - start)
+
+
+@dataclass(frozen=True)
+class SuccessRate:
+    valid: int  # successful episodes (duplicates counted: a rate, like training's validation)
+    episodes: int
+    seconds: float
+
+    @property
+    def rate(self) -> float:
+        return self.valid / max(self.episodes, 1)
+
+    def interval(self, z: float = 1.96) -> tuple[float, float]:
+        """Wilson's score interval for the rate (95% by default), sound near 0 and 1 too."""
+        n = max(self.episodes, 1)
+        p = self.valid / n
+        centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+        return max(centre - half, 0.0), min(centre + half, 1.0)
+
+
+def success_rate(policy: Policy, *, episodes: int, batch: int, seed: int) -> SuccessRate:
+    """The fraction of valid episodes over rounds 0.. of the protocol with `seed` (`play_round`), at least
+    `episodes` in all: a validation far larger than training's, with the same seeds for every policy."""
+    if episodes < 1 or batch < 1:
+        raise RLLockError(f"--episodes and --batch must be at least 1, got {episodes} and {batch}")
+    start = time.perf_counter()
+    group_searchers = searchers_for(policy, batch, local_groups())
+    valid = played = round_ = 0
+    with tqdm(total=episodes, desc="episodes", unit="episode", disable=None) as bar:
+        while played < episodes:
+            played_now = play_round(group_searchers, policy, seed, round_)
+            valid += sum(e.success for e in played_now)
+            played += len(played_now)
+            bar.update(len(played_now))
+            round_ += 1
+    return SuccessRate(valid, played, time.perf_counter() - start)

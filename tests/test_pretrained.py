@@ -16,7 +16,15 @@ from rllock import pretrained
 from rllock.cli import main
 from rllock.env import make_task
 from rllock.errors import RLLockError
-from rllock.inference import is_multitask, load_policy
+from rllock.inference import (
+    SuccessRate,
+    is_multitask,
+    load_policy,
+    local_groups,
+    play_round,
+    searchers_for,
+    success_rate,
+)
 from rllock.mcts import MCTSConfig
 from rllock.network import NetConfig
 from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
@@ -125,3 +133,35 @@ def test_the_pretrained_table_names_the_training_machine_briefly():
     assert pretrained.machine_summary(gpu) == "16 cores, NVIDIA H100 80GB HBM3"
     assert pretrained.machine_summary(None) == "-"
     assert pretrained.machine_summary("a laptop") == "a laptop"  # an unknown form is shown as it is
+
+
+def test_the_success_interval_is_wilsons():
+    assert SuccessRate(5, 10, 1.0).interval() == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    low, high = SuccessRate(0, 64, 1.0).interval()
+    assert low == 0.0 and high == pytest.approx(1.96**2 / (64 + 1.96**2))  # none of 64: still up to 5.7%
+    a, b = SuccessRate(3, 64, 1.0).interval()
+    c, d = SuccessRate(61, 64, 1.0).interval()
+    assert (a, b) == pytest.approx((1 - d, 1 - c)) and a < 3 / 64 < b
+
+
+def test_bench_success_counts_every_valid_episode_of_whole_rounds(run):
+    source, _ = run
+    policy = load_policy(source)
+    r = success_rate(policy, episodes=20, batch=8, seed=3)
+    groups = searchers_for(policy, 8, local_groups())
+    reference = [e.success for i in range(3) for e in play_round(groups, policy, 3, i)]
+    assert r.episodes == len(reference) == 24 and r.valid == sum(reference) > 0
+    code, out, err = run_cli(
+        "bench", "success", "--checkpoint", str(source), "--checkpoint", "box-k4-missing", "--episodes", "8",
+    )  # fmt: skip
+    assert code == 2 and "no such checkpoint directory" in err and len(err.strip().splitlines()) == 1
+    code, out, err = run_cli(
+        "bench", "success", "--checkpoint", str(source), "--checkpoint", str(source), "--episodes", "20",
+        "--batch", "8", "--seed", "3", "--simulations", "4", "--json",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = json.loads(out)
+    assert [(row["simulations"], row["episodes"], row["task"]) for row in rows] == [
+        (4, 24, "box:4x4x2 K=4")
+    ] * 2
+    assert rows[0]["valid"] == rows[1]["valid"]  # the same seeds for every checkpoint
