@@ -85,7 +85,10 @@ def _setup(
         return dataclasses.replace(config, net=net), None, tasks, tasks.identity(), init
     assert config.shape is not None and config.pieces is not None
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    net = fit_canvas(task, net, None if init is None else f"the --init checkpoint {config.init}")
+    canvas_of = (
+        None if init is None or config.net.canvas is not None else f"the --init checkpoint {config.init}"
+    )
+    net = fit_canvas(task, net, canvas_of)
     return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas), init
 
 

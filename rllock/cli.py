@@ -440,6 +440,7 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
 def cmd_bench_transfer(args: argparse.Namespace) -> int:
     from functools import partial
 
+    from rllock.inference import check_simulations
     from rllock.transfer import (
         bench_transfer_task,
         format_transfer_table,
@@ -450,6 +451,7 @@ def cmd_bench_transfer(args: argparse.Namespace) -> int:
 
     tasks = parse_transfer_tasks(args.tasks)
     multitask_meta(args.checkpoint)  # a wrong checkpoint is an error before any work
+    check_simulations(args.simulations)
     bench_one = partial(bench_transfer_task, args.checkpoint, simulations=args.simulations)
     return _task_table(args, "transfer", tasks, bench_one, format_transfer_table, row_json)
 
@@ -593,6 +595,12 @@ def _add_checkpoint_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--time-limit", type=_positive_float, default=3600.0, help="seconds")
     p.add_argument("--seed", type=int, default=0)
+    _add_task_args_for_checkpoints(p)
+
+
+def _add_task_args_for_checkpoints(p: argparse.ArgumentParser) -> None:
+    """The search budget and the task (`_load_for`): a multi-task checkpoint's task, or a check on a
+    single-task checkpoint's own."""
     _add_simulations_arg(p)
     p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
     p.add_argument(
@@ -742,11 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=1024, help="at least this many episodes per checkpoint")
     p.add_argument("--batch", type=int, default=64, help="episodes per batch")
     p.add_argument("--seed", type=int, default=0)
-    _add_simulations_arg(p)
-    p.add_argument("--shape", default=None, help="for a multi-task checkpoint; else fail unless its own")
-    p.add_argument("--pieces", type=int, default=None, help="for a multi-task checkpoint; else as --shape")
-    p.add_argument("--removal", choices=REMOVAL_MODES, default=None)
-    p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
+    _add_task_args_for_checkpoints(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_success)
 

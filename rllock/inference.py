@@ -97,6 +97,11 @@ def load_policy(path: str | Path, expect: dict | None = None, *, task: Task | No
     return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
 
 
+def check_simulations(simulations: int | None) -> None:
+    if simulations is not None and simulations < 1:
+        raise RLLockError(f"--simulations must be at least 1, got {simulations}")
+
+
 def with_simulations(policy: Policy, simulations: int | None) -> Policy:
     """`policy` searching with `simulations` per decision (None: the number it was trained with). More
     simulations cost proportionally more per batch and can find far more valid assemblies per episode
@@ -105,8 +110,7 @@ def with_simulations(policy: Policy, simulations: int | None) -> Policy:
         return policy
     if policy.method == "ppo":
         raise RLLockError("--simulations: a ppo checkpoint runs no search")
-    if simulations < 1:
-        raise RLLockError(f"--simulations must be at least 1, got {simulations}")
+    check_simulations(simulations)
     return dataclasses.replace(policy, mcts=dataclasses.replace(policy.mcts, simulations=simulations))
 
 
@@ -273,8 +277,9 @@ class SuccessRate:
 def success_rate(policy: Policy, *, episodes: int, batch: int, seed: int) -> SuccessRate:
     """The fraction of valid episodes over rounds 0.. of the protocol with `seed` (`play_round`), at least
     `episodes` in all: a validation far larger than training's, with the same seeds for every policy."""
-    if episodes < 1 or batch < 1:
-        raise RLLockError(f"--episodes and --batch must be at least 1, got {episodes} and {batch}")
+    for flag, value in (("--episodes", episodes), ("--batch", batch)):
+        if value < 1:
+            raise RLLockError(f"{flag} must be at least 1, got {value}")
     start = time.perf_counter()
     group_searchers = searchers_for(policy, batch, local_groups())
     valid = played = round_ = 0

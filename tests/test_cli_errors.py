@@ -62,6 +62,13 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
         (["train", "--tasks", "cube4:9-6"], "9-6"),
         (["train", "--tasks", "cube4:6", "--method", "ppo"], "rl-lock method only"),
         (["train", "--init", "cube4-k9", "--shape", "cube6", "--pieces", "20"], "canvas of the --init"),
+        (
+            ["train", "--init", "general", "--canvas", "4", "--shape", "cube5", "--pieces", "13"],
+            "4^3 canvas; use a larger --canvas",
+        ),
+        (["bench", "transfer", "--checkpoint", "general", "--simulations", "0"], "--simulations must be"),
+        (["bench", "success", "--checkpoint", "cube4-k8", "--episodes", "0"], "--episodes must be"),
+        (["bench", "success", "--checkpoint", "general"], "name one with --shape and --pieces"),
         (["bench", "transfer", "--checkpoint", "{t}/nothing"], "no such checkpoint"),
         (["bench", "transfer", "--checkpoint", "cube4-k9"], "trained for one task"),
         (["train", "--resume", "{t}/nothing"], "cannot resume"),
