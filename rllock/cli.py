@@ -242,8 +242,9 @@ def _expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
 
 
 def _load_for(args: argparse.Namespace):
-    """The policy for `generate` and `bench learning`: a single-task checkpoint's own task (checked
-    against --shape and --pieces when named), or the named task for a multi-task checkpoint."""
+    """The policy for `generate`, `bench learning` and `bench success`: a single-task checkpoint's own
+    task (checked against --shape and --pieces when named), or the named task for a multi-task
+    checkpoint; searching with --simulations when given."""
     from rllock.checkpoint import find_step_dir, read_meta
     from rllock.env import make_task
     from rllock.inference import is_multitask, load_policy, with_simulations
@@ -251,6 +252,7 @@ def _load_for(args: argparse.Namespace):
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
     meta = read_meta(find_step_dir(Path(args.checkpoint)))
+    task, expect = None, None
     if is_multitask(meta):
         if args.shape is None or args.pieces is None:
             raise RLLockError(
@@ -258,10 +260,9 @@ def _load_for(args: argparse.Namespace):
             )
         removal = args.removal or meta["task"]["removal"]
         task = make_task(args.shape, args.pieces, removal, resolution=args.resolution)
-        return with_simulations(load_policy(args.checkpoint, task=task), args.simulations)
-    return with_simulations(
-        load_policy(args.checkpoint, _expected_task(args, meta["task"])), args.simulations
-    )
+    else:
+        expect = _expected_task(args, meta["task"])
+    return with_simulations(load_policy(args.checkpoint, expect, task=task), args.simulations)
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
