@@ -3,7 +3,7 @@
 An actor plays `episodes` episodes in lockstep per call, with the weights version it was handed, pushes
 them into the replay buffer actor (waiting for it: bounded in-flight data) and returns its statistics.
 An actor with T cores splits its episodes into T lockstep groups searched in T threads
-(`rllock.mcts.play_groups`), so that one group's sampler runs while another's network does; a lockstep
+(`rllock.search.mcts.play_groups`), so that one group's sampler runs while another's network does; a lockstep
 worker instead runs one large group with the sampler spread over numba's threads. Thread counts (XLA
 runs the small network on one thread per group, which is fastest here) are set through the environment
 of the actor's process (`actor_env`), so that actors never oversubscribe the cores they were given.
@@ -19,12 +19,14 @@ import jax
 import numpy as np
 import ray
 
-from rllock.canvas import canvas_episode
 from rllock.config import MCTSConfig, NetConfig
-from rllock.env import Task, make_task, peak_rss_mb
-from rllock.mcts import Episode, Player, TimeSplit, derive_seed, play_groups
-from rllock.methods import players, space
-from rllock.tasks import TaskSet
+from rllock.core.env import Task, make_task
+from rllock.core.tasks import TaskSet
+from rllock.process import peak_rss_mb
+from rllock.search.base import Episode, Player, TimeSplit, derive_seed
+from rllock.search.canvas import canvas_episode
+from rllock.search.mcts import play_groups
+from rllock.search.methods import players, space
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -63,7 +65,7 @@ class PlaySpec:
     """What a self-play worker plays: `episodes` episodes of the task per batch, in `groups` lockstep
     groups, with this network and search; `method` (`rllock.config.METHODS`) says what an action is.
     With a `TaskSet`, each batch draws its task, and the episodes come as canvas states
-    (`rllock.canvas`)."""
+    (`rllock.search.canvas`)."""
 
     task: TaskSpec | TaskSet
     net: NetConfig

@@ -17,7 +17,7 @@ from pathlib import Path
 # importable even where the node has no editable install of it.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rllock.cli import main  # noqa: E402
+from orchestration.cli.main import main  # noqa: E402
 
 
 def job_args(argv: list[str]) -> list[str]:

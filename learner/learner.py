@@ -9,10 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from rllock.canvas import augment_canvas
 from rllock.config import LearnerConfig
-from rllock.env import Task
-from rllock.network import (
+from rllock.core.env import Task
+from rllock.core.topology import symmetries
+from rllock.search.canvas import augment_canvas
+from rllock.search.network import (
     NetConfig,
     PolicyValueNet,
     canvas_index,
@@ -21,8 +22,7 @@ from rllock.network import (
     encode_canvas,
     init_params,
 )
-from rllock.ppo import ppo_loss
-from rllock.topology import symmetries
+from rllock.search.ppo import ppo_loss
 
 
 def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):
@@ -47,7 +47,7 @@ def update_step(params, opt_state, batch, *, net: PolicyValueNet, optimizer: opt
 def ppo_update_step(
     params, opt_state, batch, *, net: PolicyValueNet, optimizer: optax.GradientTransformation, config
 ):
-    """One step on PPO's loss (`rllock.ppo.ppo_loss`); batch = (planes, chunks, valid, behaviour pi,
+    """One step on PPO's loss (`rllock.search.ppo.ppo_loss`); batch = (planes, chunks, valid, behaviour pi,
     actions, z)."""
     loss = partial(
         ppo_loss, clip=config.clip_ratio, value_coef=config.value_coef, entropy_coef=config.entropy_coef
@@ -82,7 +82,7 @@ class Learner:
     ):
         """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is.
         `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error.
-        `task` None: a multi-task run, whose samples are canvas states (`rllock.canvas`)."""
+        `task` None: a multi-task run, whose samples are canvas states (`rllock.search.canvas`)."""
         self.task = task
         self.ppo = method == "ppo"
         self.net = PolicyValueNet(net_config)

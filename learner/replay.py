@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rllock.env import peak_rss_mb
 from rllock.errors import RLLockError
-from rllock.mcts import Episode
+from rllock.process import peak_rss_mb
+from rllock.search.base import Episode
 
 
 class ReplayBuffer:
@@ -24,7 +24,7 @@ class ReplayBuffer:
         label_dtype: type = np.int8,
         voxel_dtype: type = np.int16,
     ):
-        """Dtypes as `rllock.env.compact_dtypes(task)` gives them: int8 labels, int16 voxel numbers
+        """Dtypes as `rllock.core.env.compact_dtypes(task)` gives them: int8 labels, int16 voxel numbers
         for K <= 127 and N <= 32767."""
         self.capacity = capacity
         self.labels = np.zeros((capacity, n_voxels), label_dtype)
@@ -42,7 +42,7 @@ class ReplayBuffer:
 
     def add(self, episode: Episode, pieces: int = 0) -> None:
         """`pieces`: the episode's K, stored for multi-task runs (whose buffer holds canvas states,
-        `rllock.canvas`)."""
+        `rllock.search.canvas`)."""
         for t in range(len(episode.z)):
             i = self.cursor
             self.labels[i] = episode.labels[t]

@@ -1,6 +1,6 @@
 """`rllock generate --actors N [--address HOST:PORT]`: the inference protocol's rounds spread over N Ray
 actors of one CPU core each, locally or on a cluster. The driver hands out rounds (seeded as in-process
-generation, see `rllock.inference`), deduplicates the finished ones, verifies and writes them. The
+generation, see `rllock.search.inference`), deduplicates the finished ones, verifies and writes them. The
 parameters travel as host arrays, so a checkpoint trained on any device runs there."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import ray
 
 from actors.selfplay import actor_env
 from orchestration.pool import start_ray
-from rllock.assembly import PictureWriter
-from rllock.inference import Collector, GenerateResult, Policy, play_round, searchers_for
+from rllock.files.assembly import PictureWriter
+from rllock.search.inference import Collector, GenerateResult, Policy, play_round, searchers_for
 
 
 @ray.remote
@@ -43,7 +43,7 @@ def generate_on_ray(
     picture: PictureWriter | None = None,
     progress: bool = True,
 ) -> GenerateResult:
-    """Like `rllock.inference.generate`, with rounds played by `actors` Ray actors (one core each)."""
+    """Like `rllock.search.inference.generate`, with rounds played by `actors` Ray actors (one core each)."""
     started = start_ray(address)
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))

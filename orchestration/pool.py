@@ -12,8 +12,8 @@ from ray.exceptions import GetTimeoutError, RayActorError
 
 from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, TaskSpec, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
+from rllock.core.tasks import TaskSet
 from rllock.errors import RLLockError
-from rllock.tasks import TaskSet
 
 log = logging.getLogger(__name__)
 

@@ -12,11 +12,11 @@ import numpy as np
 from PIL import Image
 from tensorboardX import SummaryWriter
 
-from rllock import checkpoint as ckpt
-from rllock.assembly import write_assembly
 from rllock.config import TrainConfig, to_json
-from rllock.env import Task
-from rllock.render import write_picture
+from rllock.core.env import Task
+from rllock.files import checkpoint as ckpt
+from rllock.files.assembly import write_assembly
+from rllock.files.render import write_picture
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class Recorder:
         resume: bool,
         sessions: list[dict],
     ):
-        """`task`: the run's task, or a multi-task run's identity (`rllock.checkpoint.meta`); `sessions`:
+        """`task`: the run's task, or a multi-task run's identity (`checkpoint.meta`); `sessions`:
         the provenance of the processes that trained this run before (when resumed)."""
         self.logdir, self.config, self.task = logdir, config, task
         self.sessions = [*sessions, ckpt.provenance()]

@@ -39,14 +39,15 @@ from learner.replay import ReplayBuffer
 from orchestration.pacing import Pacing, Schedule, final_reserve, validation_estimate
 from orchestration.pool import ActorPool, largest_node_cpus, plan_layout, start_ray
 from orchestration.recorder import Counters, Recorder, best_rank, validation_rank
-from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig
-from rllock.env import Task, compact_dtypes, final_labels, make_task, peak_rss_mb
+from rllock.core.env import Task, compact_dtypes, final_labels, make_task
+from rllock.core.tasks import TaskSet, parse_tasks
 from rllock.errors import RLLockError
-from rllock.inference import load_network
-from rllock.methods import players, space, with_method_defaults
-from rllock.network import fit_canvas
-from rllock.tasks import TaskSet, parse_tasks
+from rllock.files import checkpoint as ckpt
+from rllock.process import peak_rss_mb
+from rllock.search.inference import load_network
+from rllock.search.methods import players, space, with_method_defaults
+from rllock.search.network import fit_canvas
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +190,7 @@ class _Run:
             assert self.task is not None
             shape = (self.task.size, *self.space.action_shape(self.task, config.mcts))
             dtypes = compact_dtypes(self.task)
-        else:  # canvas states (rllock.canvas)
+        else:  # canvas states (rllock.search.canvas)
             shape = (self.tasks.canvas**3, config.mcts.candidates, self.tasks.max_piece_size())
             dtypes = (np.int8, np.int16)
         self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(config.buffer_capacity, *shape, *dtypes)

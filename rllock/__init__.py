@@ -14,7 +14,8 @@ stays light):
 Layers: the library is `rllock` (core: shapes, topology, reference and fast checkers, env, verifier;
 search: network, mcts, solver, inference; files: assembly, checkpoint, export, meshes, render). The
 packages `actors` and `learner` build on it, `orchestration` (training loop, Ray actor pool, generation
-on Ray) sits above them, and `rllock.cli` calls it. No module of `rllock` imports the layers above it at
+on Ray) sits above them, and the command line
+(`orchestration.cli`) calls it. No module of `rllock` imports the layers above it at
 module level.
 """
 
@@ -26,12 +27,12 @@ from typing import Any
 __all__ = ["generate", "load_policy", "make_task", "read_assembly", "solve", "verify"]
 
 _API = {
-    "generate": ("rllock.inference", "generate"),
-    "load_policy": ("rllock.inference", "load_policy"),
-    "make_task": ("rllock.env", "make_task"),
-    "read_assembly": ("rllock.assembly", "read_assembly"),
-    "solve": ("rllock.solver", "solve"),
-    "verify": ("rllock.verifier", "verify_labels"),
+    "generate": ("rllock.search.inference", "generate"),
+    "load_policy": ("rllock.search.inference", "load_policy"),
+    "make_task": ("rllock.core.env", "make_task"),
+    "read_assembly": ("rllock.files.assembly", "read_assembly"),
+    "solve": ("rllock.search.solver", "solve"),
+    "verify": ("rllock.core.verifier", "verify_labels"),
 }
 
 

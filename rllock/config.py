@@ -3,7 +3,8 @@ command line can build its parser, and tests their settings, without loading the
 
 A training run has one `TrainConfig`, which nests the network, search, learner and self-play configs;
 it is saved once, in every checkpoint's metadata, and that document is what both `--resume` and
-`generate` read. The command line's flags are generated from these dataclasses (`rllock.flags`), one
+`generate` read. The command line's flags are generated from these dataclasses (`orchestration.cli.flags`),
+one
 flag per leaf field, with the field docstrings below as their help.
 """
 
@@ -17,7 +18,7 @@ from typing import Any
 from rllock.errors import RLLockError
 
 EVALUATION_MODES = ("auto", "per-actor", "lockstep")
-# What trains the network: see rllock.methods.
+# What trains the network: see rllock.search.methods.
 METHODS = ("rl-lock", "rl-lock-action", "ppo")
 
 
@@ -103,7 +104,7 @@ class TrainConfig:
     tasks: str | None = None
     """Multi-task training, one network for many tasks: task groups SHAPE:KLO-KHI separated by commas,
     e.g. cube4:6-9,box:6x5x4:8-12,random:60-200:6-20 (random:NLO-NHI: a fresh random shape of that
-    many voxels per draw; rllock.tasks). Replaces --shape and --pieces."""
+    many voxels per draw; rllock.core.tasks). Replaces --shape and --pieces."""
     init: str | None = None
     """Start from this checkpoint's network (a run's log directory or a shipped name, e.g. general:
     fine-tuning); its network size and input planes are used, and its canvas unless --canvas is given

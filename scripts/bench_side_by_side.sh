@@ -11,9 +11,9 @@ trap 'git worktree remove --force "$tmp/base" >/dev/null 2>&1 || true; rm -rf "$
 git worktree add --detach "$tmp/base" "$base" >/dev/null 2>&1
 head_dir="$(pwd)"
 for i in $(seq "$rounds"); do
-  (cd "$tmp/base" && PYTHONPATH="$tmp/base" "$head_dir/.venv/bin/python" -m rllock.cli bench selfplay "$@" --json) \
+  (cd "$tmp/base" && PYTHONPATH="$tmp/base" "$head_dir/.venv/bin/python" -m orchestration.cli bench selfplay "$@" --json) \
     > "$tmp/base_$i.json"
-  (cd "$head_dir" && PYTHONPATH="$head_dir" .venv/bin/python -m rllock.cli bench selfplay "$@" --json) > "$tmp/head_$i.json"
+  (cd "$head_dir" && PYTHONPATH="$head_dir" .venv/bin/python -m orchestration.cli bench selfplay "$@" --json) > "$tmp/head_$i.json"
 done
 .venv/bin/python - "$tmp" "$rounds" "$base" <<'PY'
 import json, statistics, sys

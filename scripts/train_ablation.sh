@@ -3,7 +3,7 @@
 # runs/ablation/<method>/<task>/, for `rllock bench ablation`.
 #   bash scripts/train_ablation.sh MINUTES [TASKS]     (TASKS default: cube4-k7 cube4-k8 cube4-k9 cube5-k13)
 # Every method gets the same flags apart from --method; each method's own search and buffer settings
-# apply (rllock/methods.py). Validation: 16 episodes every 5 minutes (RL-Lock_Action's episodes take
+# apply (rllock/search/methods.py). Validation: 16 episodes every 5 minutes (RL-Lock_Action's episodes take
 # n(K-1) searches each, so 64 would eat much of a short budget).
 set -euo pipefail
 cd "$(dirname "$0")/.."

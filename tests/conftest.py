@@ -13,6 +13,6 @@ os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 @pytest.fixture(scope="session")
 def data() -> Path:
     """The data vendored in the package (`rllock/data/`: published/ assemblies, shapes/)."""
-    from rllock.shapes import data_path
+    from rllock.core.shapes import data_path
 
     return data_path("")

@@ -9,10 +9,10 @@ import sys
 
 import numpy as np
 
-from rllock import fast
-from rllock import reference as ref
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig
-from rllock.env import State, Task, apply_chunk, candidates, initial_state, make_task
+from rllock.core import compiled_checkers as checkers
+from rllock.core import reference_checkers as ref
+from rllock.core.env import State, Task, apply_chunk, candidates, initial_state, make_task
 
 
 def voxel_labels(task: Task, state: State) -> dict[ref.Voxel, int]:
@@ -32,8 +32,8 @@ def untrained_episodes(space, mcts, batch: int, seed: int) -> tuple[Task, list]:
     """Episodes of box:4x4x2 K=3 played by the batched search with a small untrained network."""
     import jax
 
-    from rllock.mcts import Searcher
-    from rllock.network import NetConfig, PolicyValueNet, init_params
+    from rllock.search.mcts import Searcher
+    from rllock.search.network import NetConfig, PolicyValueNet, init_params
 
     task = make_task("box:4x4x2", 3)
     config = NetConfig(canvas=4, features=(4, 8))
@@ -49,8 +49,8 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     import jax
 
     from learner.learner import Learner, LearnerConfig
-    from rllock import checkpoint as ckpt
     from rllock.config import to_json
+    from rllock.files import checkpoint as ckpt
 
     task = make_task(shape, pieces)
     learner = Learner(task, net, LearnerConfig(), jax.random.PRNGKey(3), method)
@@ -69,9 +69,9 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     import jax
 
     from learner.learner import Learner, LearnerConfig
-    from rllock import checkpoint as ckpt
     from rllock.config import to_json
-    from rllock.tasks import parse_tasks
+    from rllock.core.tasks import parse_tasks
+    from rllock.files import checkpoint as ckpt
 
     tasks = parse_tasks(spec, canvas=net.canvas)
     net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)
@@ -85,11 +85,11 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
 
 
 def reference_bits(parts: list[ref.Part], rest: ref.Part, removal: str) -> int:
-    """The checks (fast.CONNECTED | REMOVABLE | INTERLOCKING) that the reference checkers pass on the
+    """The checks (checkers.CONNECTED | REMOVABLE | INTERLOCKING) that the reference checkers pass on the
     newest part parts[-1] and the remaining volume `rest`."""
-    bits = fast.CONNECTED if ref.is_connected(rest) else 0
-    bits |= fast.REMOVABLE if ref.is_removable(parts[-1], rest, removal) else 0
-    bits |= fast.INTERLOCKING if len(parts) < 2 or ref.is_interlocking([*parts, rest]) else 0
+    bits = checkers.CONNECTED if ref.is_connected(rest) else 0
+    bits |= checkers.REMOVABLE if ref.is_removable(parts[-1], rest, removal) else 0
+    bits |= checkers.INTERLOCKING if len(parts) < 2 or ref.is_interlocking([*parts, rest]) else 0
     return bits
 
 
@@ -138,7 +138,7 @@ TINY = TrainConfig(
 def tiny_flags(config: TrainConfig = TINY, **changes) -> list[str]:
     """`rllock train` flags that give `config` (top-level fields replaced by `changes`), leaving out
     --logdir and --minutes, which each test sets."""
-    from rllock.flags import leaves
+    from orchestration.cli.flags import leaves
 
     config = dataclasses.replace(config, **changes)
     flags = []
@@ -161,6 +161,6 @@ def tiny_flags(config: TrainConfig = TINY, **changes) -> list[str]:
 def run_cli(*args: str, timeout: float = 300):
     """Run the installed `rllock` command in a subprocess: (exit code, stdout, stderr)."""
     proc = subprocess.run(
-        [sys.executable, "-m", "rllock.cli", *args], capture_output=True, text=True, timeout=timeout
+        [sys.executable, "-m", "orchestration.cli", *args], capture_output=True, text=True, timeout=timeout
     )
     return proc.returncode, proc.stdout, proc.stderr

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 from helpers import run_cli, save_run
 
-from rllock.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
+from orchestration.bench.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
 from rllock.errors import RLLockError
-from rllock.mcts import MCTSConfig
-from rllock.network import NetConfig
+from rllock.search.mcts import MCTSConfig
+from rllock.search.network import NetConfig
 
 NET = NetConfig(canvas=4, features=(4, 8))
 FAST = MCTSConfig(simulations=2, max_considered=2, raw_samples=128, candidates=4, max_depth=4)

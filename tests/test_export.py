@@ -14,20 +14,20 @@ import pytest
 import trimesh
 from helpers import run_cli
 
-from rllock.assembly import write_assembly
+from orchestration.cli.assemblies import add_commands
+from rllock.core.meshes import piece_volume
+from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
+from rllock.core.shapes import from_xfastest, read_puz_labels
+from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
-from rllock.export import PRINT_GAP, write_meshes
-from rllock.meshes import piece_volume
-from rllock.reference import DIRECTION_NAMES, DIRECTIONS
-from rllock.results_cli import add_commands
-from rllock.shapes import from_xfastest, read_puz_labels
-from rllock.verifier import verify_labels
+from rllock.files.assembly import write_assembly
+from rllock.files.export import PRINT_GAP, write_meshes
 
 
 @pytest.fixture(scope="module")
 def labels() -> np.ndarray:
-    from rllock.env import make_task
-    from rllock.solver import search
+    from rllock.core.env import make_task
+    from rllock.search.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 
@@ -105,7 +105,7 @@ def test_stl_export_with_gap(tmp_path, saved, labels):
 
 def _edge_only_pairs(labels: np.ndarray) -> dict[int, list[tuple[tuple[int, ...], tuple[int, ...]]]]:
     """Per piece, its pairs of voxels that touch along an edge and nowhere else: neither voxel beside
-    that edge belongs to the piece (written out plainly here, apart from rllock.meshes)."""
+    that edge belongs to the piece (written out plainly here, apart from rllock.core.meshes)."""
     found: dict[int, list] = {}
     for k in range(1, int(labels.max()) + 1):
         cells = {tuple(int(c) for c in v) for v in np.argwhere(labels == k)}
@@ -135,8 +135,8 @@ def _solid(mesh: trimesh.Trimesh) -> m3.Manifold:
 
 
 def test_default_stl_export_is_watertight_where_voxels_of_a_piece_touch_only_along_an_edge(tmp_path):
-    from rllock.env import make_task
-    from rllock.solver import search
+    from rllock.core.env import make_task
+    from rllock.search.solver import search
 
     # The first seed whose 4^3 K=7 assembly has edge-only contacts in at least three pieces; with gap 0,
     # that assembly (seed 4) welds to two open STL pieces of seven.
@@ -181,7 +181,7 @@ def test_edge_only_contacts_in_a_tiny_grid(tmp_path, caplog):
         assert mesh.is_watertight
         assert mesh.volume == pytest.approx(2 * (10 - PRINT_GAP) ** 3, rel=1e-5)
     # The exact shape welds the shared edge into four faces, and the export says so; OBJ stays closed.
-    with caplog.at_level(logging.WARNING, logger="rllock.export"):
+    with caplog.at_level(logging.WARNING, logger="rllock.files.export"):
         paths = write_meshes(labels, "stl", tmp_path / "exact", gap=0)
     assert "pieces 1, 2 have voxels that touch only along an edge" in caplog.text
     assert not any(trimesh.load(p).is_watertight for p in paths)

@@ -9,13 +9,13 @@ import pytest
 from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
 from orchestration.recorder import validation_rank
-from rllock import checkpoint as ckpt
 from rllock.config import TrainConfig, to_json
-from rllock.env import make_task
+from rllock.core.env import make_task
 from rllock.errors import RLLockError
-from rllock.inference import load_policy
-from rllock.mcts import ChunkStore, MCTSConfig, Searcher
-from rllock.network import NetConfig, PolicyValueNet
+from rllock.files import checkpoint as ckpt
+from rllock.search.inference import load_policy
+from rllock.search.mcts import ChunkStore, MCTSConfig, Searcher
+from rllock.search.network import NetConfig, PolicyValueNet
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)

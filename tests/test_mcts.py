@@ -5,18 +5,11 @@ import numpy as np
 import pytest
 from helpers import untrained_episodes
 
-from rllock.env import final_labels, initial_state, make_task
-from rllock.mcts import (
-    ChunkStore,
-    MCTSConfig,
-    bounded_value,
-    derive_seed,
-    group_sizes,
-    play_groups,
-    searchers,
-)
-from rllock.network import NetConfig, init_params
-from rllock.verifier import verify_labels
+from rllock.core.env import final_labels, initial_state, make_task
+from rllock.core.verifier import verify_labels
+from rllock.search.base import derive_seed, group_sizes
+from rllock.search.mcts import ChunkStore, MCTSConfig, bounded_value, play_groups, searchers
+from rllock.search.network import NetConfig, init_params
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from rllock.core.meshes import assembly_meshes, edge_only_contacts, piece_mesh, piece_volume
+from rllock.core.shapes import load_shape
 from rllock.errors import RLLockError
-from rllock.meshes import assembly_meshes, edge_only_contacts, piece_mesh, piece_volume
-from rllock.shapes import load_shape
 
 
 def _face_neighbours(labels: np.ndarray) -> set[tuple[int, int]]:
@@ -56,7 +56,7 @@ def test_disconnected_mesh_keeps_the_largest_part(tmp_path, caplog):
     small = trimesh.creation.box(extents=[1, 1, 1])
     small.apply_translation([5, 0, 0])
     trimesh.util.concatenate([big, small]).export(tmp_path / "two.obj")
-    with caplog.at_level(logging.WARNING, logger="rllock.meshes"):
+    with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
         grid = load_shape(str(tmp_path / "two.obj"), resolution=13)
     # Pitch 0.5: the big box is 4x4x4 voxels, the small one 2x2x2.
     assert grid.shape == (4, 4, 4) and grid.all()
@@ -149,8 +149,8 @@ def test_piece_volume_counts_cores_slabs_prisms_and_corners():
 
 @pytest.fixture(scope="module")
 def assembly() -> np.ndarray:
-    from rllock.env import make_task
-    from rllock.solver import search
+    from rllock.core.env import make_task
+    from rllock.search.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 

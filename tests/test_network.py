@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rllock.env import make_task
+from rllock.core.env import make_task
 from rllock.errors import RLLockError
-from rllock.network import (
+from rllock.search.network import (
     MASKED_LOGIT,
     Conv3,
     NetConfig,

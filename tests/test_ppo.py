@@ -6,12 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from rllock.env import final_labels, make_task
-from rllock.mcts import MCTSConfig
-from rllock.network import NetConfig, PolicyValueNet, init_params
-from rllock.ppo import PolicyPlayer, ppo_loss
-from rllock.verifier import verify_labels
-from rllock.voxel_env import initial_voxel_state, legal_mask, step
+from rllock.core.env import final_labels, make_task
+from rllock.core.verifier import verify_labels
+from rllock.core.voxel_env import initial_voxel_state, legal_mask, step
+from rllock.search.mcts import MCTSConfig
+from rllock.search.network import NetConfig, PolicyValueNet, init_params
+from rllock.search.ppo import PolicyPlayer, ppo_loss
 
 NET = NetConfig(canvas=4, features=(4, 8))
 

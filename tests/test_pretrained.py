@@ -11,12 +11,13 @@ import orbax.checkpoint as ocp
 import pytest
 from helpers import run_cli, save_run
 
-from rllock import checkpoint as ckpt
-from rllock import pretrained
-from rllock.cli import main
-from rllock.env import make_task
+from orchestration.bench.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
+from orchestration.cli.main import main
+from rllock.core.env import make_task
 from rllock.errors import RLLockError
-from rllock.inference import (
+from rllock.files import checkpoint as ckpt
+from rllock.search import pretrained
+from rllock.search.inference import (
     SuccessRate,
     is_multitask,
     load_policy,
@@ -25,9 +26,8 @@ from rllock.inference import (
     searchers_for,
     success_rate,
 )
-from rllock.mcts import MCTSConfig
-from rllock.network import NetConfig
-from rllock.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
+from rllock.search.mcts import MCTSConfig
+from rllock.search.network import NetConfig
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from helpers import parts_after, random_valid_states, raw_chunks
 
-from rllock import reference as ref
-from rllock.env import make_task
-from rllock.shapes import read_puz_labels
+from rllock.core import reference_checkers as ref
+from rllock.core.env import make_task
+from rllock.core.shapes import read_puz_labels
 
 
 def _parts(labels: np.ndarray, upto: int) -> list[ref.Part]:

@@ -10,21 +10,28 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rllock.assembly import write_assembly
+from orchestration.cli.assemblies import add_commands
+from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
+from rllock.core.shapes import read_puz_labels
+from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
-from rllock.reference import DIRECTION_NAMES, DIRECTIONS
-from rllock.render import disassembly_steps, draw_png, piece_colors, write_gif, write_html, write_picture
-from rllock.results_cli import add_commands
-from rllock.shapes import read_puz_labels
-from rllock.verifier import verify_labels
+from rllock.files.assembly import write_assembly
+from rllock.files.render import (
+    disassembly_steps,
+    draw_png,
+    piece_colors,
+    write_gif,
+    write_html,
+    write_picture,
+)
 
 CHROMIUM = Path("/usr/bin/chromium")
 
 
 @pytest.fixture(scope="module")
 def labels() -> np.ndarray:
-    from rllock.env import make_task
-    from rllock.solver import search
+    from rllock.core.env import make_task
+    from rllock.search.solver import search
 
     return next(search(make_task("cube4", 7), seed=0, time_limit=30)).labels
 

@@ -23,7 +23,7 @@ TINY = tiny_flags()
 
 def _train(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "rllock.cli", "train", *args],
+        [sys.executable, "-m", "orchestration.cli", "train", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,

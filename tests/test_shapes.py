@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rllock.core.shapes import VENDORED_SHAPES, data_path, load_shape, piece_size, read_puz_labels, write_puz
 from rllock.errors import RLLockError
-from rllock.shapes import VENDORED_SHAPES, data_path, load_shape, piece_size, read_puz_labels, write_puz
 
 
 def test_builtins_have_the_documented_sizes():

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
-from rllock.assembly import read_assembly, write_assembly
-from rllock.env import make_task
-from rllock.shapes import read_puz_labels
-from rllock.solver import luby, search
-from rllock.verifier import verify_labels
+from rllock.core.env import make_task
+from rllock.core.shapes import read_puz_labels
+from rllock.core.verifier import verify_labels
+from rllock.files.assembly import read_assembly, write_assembly
+from rllock.search.solver import luby, search
 
 
 def test_luby_sequence():

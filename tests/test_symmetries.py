@@ -11,10 +11,10 @@ from helpers import random_valid_states, raw_chunks
 
 from learner.learner import augment
 from learner.replay import ReplayBuffer
-from rllock import fast
-from rllock.env import State, make_task
-from rllock.mcts import Episode
-from rllock.topology import build_topology, symmetries
+from rllock.core import compiled_checkers as checkers
+from rllock.core.env import State, make_task
+from rllock.core.topology import build_topology, symmetries
+from rllock.search.base import Episode
 
 
 def _brute_force_count(grid: np.ndarray) -> int:
@@ -60,16 +60,16 @@ def test_checkers_agree_on_symmetric_images(removal):
         chunks = raw_chunks(task, state, rng, 40)
         if len(chunks) == 0:
             continue
-        want = fast.check_chunks(topo.arrays, state.labels, state.placed + 1, chunks, removal == "path")
+        want = checkers.check_chunks(topo.arrays, state.labels, state.placed + 1, chunks, removal == "path")
         for p in perms[rng.choice(len(perms), 6, replace=False)]:
             labels = np.empty_like(state.labels)
             labels[p] = state.labels
-            got = fast.check_chunks(
+            got = checkers.check_chunks(
                 topo.arrays, labels, state.placed + 1, p[chunks].astype(np.int32), removal == "path"
             )
             np.testing.assert_array_equal(got, want)
             compared += len(chunks)
-        accepted += int((want == fast.ALL_CHECKS).sum())
+        accepted += int((want == checkers.ALL_CHECKS).sum())
     assert compared > 1000 and accepted > 10  # both outcomes were exercised
 
 

@@ -22,18 +22,30 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from actors.selfplay import PlaySpec, SelfPlayWorker
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
+from orchestration.bench.paper import Arm
+from orchestration.bench.transfer import (
+    TransferTask,
+    bench_transfer_task,
+    format_transfer_table,
+    parse_transfer_tasks,
+    ratio,
+    trained_on,
+)
+from orchestration.cli.main import main
 from orchestration.recorder import Counters, Recorder
 from orchestration.train import _Run, _setup
-from rllock import pretrained
-from rllock.assembly import read_assembly
-from rllock.canvas import augment_canvas, canvas_episode
-from rllock.checkpoint import find_step_dir, read_meta
-from rllock.cli import main
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
-from rllock.env import State, make_task
+from rllock.core.env import State, make_task
+from rllock.core.shapes import crop, is_connected
+from rllock.core.tasks import parse_tasks, random_shape
+from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
-from rllock.inference import load_policy, with_simulations
-from rllock.network import (
+from rllock.files.assembly import read_assembly
+from rllock.files.checkpoint import find_step_dir, read_meta
+from rllock.search import pretrained
+from rllock.search.canvas import augment_canvas, canvas_episode
+from rllock.search.inference import load_policy, with_simulations
+from rllock.search.network import (
     TASK_SCALE,
     canvas_index,
     chunk_logits,
@@ -42,18 +54,6 @@ from rllock.network import (
     init_params,
     to_canvas,
 )
-from rllock.paper import Arm
-from rllock.shapes import crop, is_connected
-from rllock.tasks import parse_tasks, random_shape
-from rllock.transfer import (
-    TransferTask,
-    bench_transfer_task,
-    format_transfer_table,
-    parse_transfer_tasks,
-    ratio,
-    trained_on,
-)
-from rllock.verifier import verify_labels
 
 SPEC = "cube4:6-9,box:6x5x4:8-12,random:60-200:6-20"
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
-from rllock import reference as ref
-from rllock.env import make_task
-from rllock.shapes import read_puz_labels, write_puz
-from rllock.solver import search
-from rllock.verifier import verify_labels
+from rllock.core import reference_checkers as ref
+from rllock.core.env import make_task
+from rllock.core.shapes import read_puz_labels, write_puz
+from rllock.core.verifier import verify_labels
+from rllock.search.solver import search
 
 PUBLISHED = [
     "Cube_4x4x4_K9.puz",
@@ -97,7 +97,7 @@ def test_verify_command_exit_codes_and_json(data, tmp_path):
 
 
 def test_verify_uses_the_removal_mode_an_assembly_json_names(data, tmp_path):
-    from rllock.assembly import write_assembly
+    from rllock.files.assembly import write_assembly
 
     labels = read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz")  # valid only under path
     write_assembly(

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from helpers import parts_after, reference_bits
 
-from rllock import fast
-from rllock import reference as ref
-from rllock.env import State, make_task
-from rllock.voxel_env import initial_voxel_state, is_solved, is_terminal, legal_mask, step
+from rllock.core import compiled_checkers as checkers
+from rllock.core import reference_checkers as ref
+from rllock.core.env import State, make_task
+from rllock.core.voxel_env import initial_voxel_state, is_solved, is_terminal, legal_mask, step
 
 
 def _frontier_rule(task, state) -> set[int]:
@@ -68,7 +68,7 @@ def test_a_completed_piece_is_accepted_exactly_when_the_reference_checkers_accep
                 continue
             before, chunk, accepted, reward = done
             parts, rest = parts_after(task, before, chunk)
-            assert accepted == (reference_bits(parts, rest, removal) == fast.ALL_CHECKS)
+            assert accepted == (reference_bits(parts, rest, removal) == checkers.ALL_CHECKS)
             assert reward == (1.0 / k if accepted else 0.0)
             outcomes[accepted] += 1
     assert outcomes[True] > 20 and outcomes[False] > 20

@@ -9,12 +9,12 @@ import pytest
 from helpers import untrained_episodes
 
 from rllock.config import TrainConfig
-from rllock.env import final_labels
-from rllock.mcts import MCTSConfig
-from rllock.methods import with_method_defaults
-from rllock.verifier import verify_labels
-from rllock.voxel_env import initial_voxel_state, legal_mask, step
-from rllock.voxel_search import VoxelStore
+from rllock.core.env import final_labels
+from rllock.core.verifier import verify_labels
+from rllock.core.voxel_env import initial_voxel_state, legal_mask, step
+from rllock.search.mcts import MCTSConfig
+from rllock.search.methods import with_method_defaults
+from rllock.search.voxel_search import VoxelStore
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, max_depth=6)
 

@@ -1,0 +1,215 @@
+"""`rllock bench paper`: the paper's tasks, each run three ways under the paper's protocol.
+
+For each task (a shipped checkpoint name such as `cube6-k25`): batches of 64 episodes until 5 valid
+assemblies or the time limit, with the shipped checkpoint and with the same search untrained, then the
+search solver for 5 assemblies under the same limit. Times are wall clock divided by the valid
+assemblies found. Each network arm includes compiling its own search, and the trained arm loading its
+checkpoint; what any arm would pay once per process (the sampler's compiled code, JAX's start) is paid
+before the first arm, so that running first costs no arm anything. The paper's figures (Table 1, RTX 5090
+workstation) stand beside them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import jax
+
+from orchestration.bench.solve import PAPER_MINUTES
+from rllock.config import MCTSConfig, NetConfig
+from rllock.core.env import Task, initial_state, make_task, sample_accepted
+from rllock.errors import RLLockError
+from rllock.files.checkpoint import shipped_names
+from rllock.search.inference import Policy, generate, load_policy, untrained_like
+from rllock.search.network import fit_canvas, init_params
+from rllock.search.solver import search
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PaperTask:
+    name: str  # the shipped checkpoint's name
+    shape: str
+    pieces: int
+    in_table: bool  # in the paper's Table 1 (Ring and Sofa appear only in figures, without times)
+    paper_rllock_s: float | None  # the paper's RL-Lock inference time per valid assembly
+    paper_desia_s: float | None  # DESIA's; None in Table 1: nothing valid within 60 minutes
+
+
+def _paper_tasks() -> dict[str, PaperTask]:
+    tasks = {}
+    for (size, k), (rl, desia) in PAPER_MINUTES.items():
+        name = f"cube{size}-k{k}"
+        tasks[name] = PaperTask(name, f"cube{size}", k, True, rl * 60, None if desia is None else desia * 60)
+    tasks["ring-k15"] = PaperTask("ring-k15", "ring", 15, False, None, None)
+    tasks["sofa-k19"] = PaperTask("sofa-k19", "sofa", 19, False, None, None)
+    return tasks
+
+
+PAPER_TASKS = _paper_tasks()
+
+
+def parse_paper_tasks(spec: str | None) -> list[PaperTask]:
+    """'cube4-k9,sofa-k19' -> those tasks; None -> all eleven."""
+    if spec is None:
+        return list(PAPER_TASKS.values())
+    out = []
+    for name in (s.strip() for s in spec.split(",")):
+        if name not in PAPER_TASKS:
+            raise RLLockError(f"unknown task {name!r}: the paper's tasks are {', '.join(PAPER_TASKS)}")
+        out.append(PAPER_TASKS[name])
+    return out
+
+
+@dataclass(frozen=True)
+class Arm:
+    valid: int
+    episodes: int | None  # None for the search solver
+    seconds: float
+
+    @property
+    def time_per_valid_s(self) -> float | None:
+        return self.seconds / self.valid if self.valid else None
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    task: PaperTask
+    checkpoint: str | None  # None: nothing shipped under the task's name
+    step: int | None
+    trained: Arm | None
+    untrained: Arm
+    solver: Arm
+
+
+def _untrained_policy(task: PaperTask, seed: int) -> Policy:
+    """The untrained arm where nothing is shipped: the default network and search for the task."""
+    t = make_task(task.shape, task.pieces)
+    net = fit_canvas(t, NetConfig())
+    params = init_params(net, jax.random.PRNGKey(seed))
+    return Policy(t, net, MCTSConfig(), "rl-lock", params, f"untrained ({seed})", 0)
+
+
+def warm_process(shape: str, pieces: int) -> None:
+    """Pay the once-per-process costs before any arm is timed: the sampler's compiled code (numba's
+    cache) and JAX's backend."""
+    t = make_task(shape, pieces)
+    sample_accepted(t, initial_state(t), seed=0, num_samples=1)
+    jax.block_until_ready(jax.numpy.zeros(1) + 1)
+
+
+def policy_arm(
+    load: Callable[[], Policy], *, count: int, batch: int, time_limit: float, seed: int
+) -> tuple[Arm, Policy]:
+    """The protocol with the policy `load` gives, its loading and its search's compiling timed with it."""
+    t0 = time.perf_counter()
+    policy = load()
+    r = generate(policy, count=count, batch=batch, time_limit=time_limit, seed=seed, progress=False)
+    arm = Arm(r.valid, r.episodes, time.perf_counter() - t0)
+    log.info("%s: %d valid in %.1f s", policy.source, arm.valid, arm.seconds)
+    return arm, policy
+
+
+def solver_arm(task: Task, *, count: int, time_limit: float, seed: int) -> Arm:
+    """The search solver until `count` assemblies or the limit."""
+    t0 = time.perf_counter()
+    found = 0
+    for _ in search(task, seed=seed, time_limit=time_limit):
+        found += 1
+        if found >= count:
+            break
+    arm = Arm(found, None, time.perf_counter() - t0)
+    log.info("solver: %d valid in %.1f s", arm.valid, arm.seconds)
+    return arm
+
+
+def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: float, seed: int) -> PaperRow:
+    warm_process(task.shape, task.pieces)
+    protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
+    shipped = task.name in shipped_names()
+    trained = None
+    if shipped:
+        trained, policy = policy_arm(lambda: load_policy(task.name), **protocol)
+        untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
+    else:
+        untrained, _ = policy_arm(lambda: _untrained_policy(task, seed), **protocol)
+    solver = solver_arm(make_task(task.shape, task.pieces), count=count, time_limit=time_limit, seed=seed)
+    return PaperRow(
+        task,
+        task.name if shipped else None,
+        policy.step if shipped else None,
+        trained,
+        untrained,
+        solver,
+    )
+
+
+def arm_json(a: Arm | None) -> dict | None:
+    if a is None:
+        return None
+    return {
+        "valid": a.valid,
+        "episodes": a.episodes,
+        "seconds": round(a.seconds, 2),
+        "time_per_valid_s": a.time_per_valid_s,
+    }
+
+
+def arm_cell(a: Arm | None) -> str:
+    """An arm in a markdown table: seconds per valid assembly (valid found), or none in S seconds."""
+    if a is None:
+        return "not shipped"
+    if not a.valid:
+        return f"none in {a.seconds:.0f}"
+    return f"{a.time_per_valid_s:.1f} ({a.valid})"
+
+
+def row_json(row: PaperRow) -> dict:
+    arm = arm_json
+    return {
+        "task": row.task.name,
+        "shape": row.task.shape,
+        "pieces": row.task.pieces,
+        "checkpoint": row.checkpoint,
+        "step": row.step,
+        "trained": arm(row.trained),
+        "untrained": arm(row.untrained),
+        "solver": arm(row.solver),
+        "paper_rllock_s": row.task.paper_rllock_s,
+        "paper_desia_s": row.task.paper_desia_s,
+    }
+
+
+def protocol_note(count: int, batch: int, time_limit: float) -> str:
+    """What a table's protocol was, for its caption."""
+    return f"{count} wanted, batches of {batch}, {time_limit:.0f} s limit per arm"
+
+
+def format_paper_table(rows: list[PaperRow], protocol: dict, command: str) -> str:
+    """The markdown table: seconds per valid assembly, with the valid count, beside the paper's."""
+    arm = arm_cell
+
+    def paper(task: PaperTask, v: float | None) -> str:
+        if not task.in_table:
+            return "-"
+        return "none in 3600" if v is None else f"{v:.1f}"
+
+    lines = [
+        f"    {command}",
+        "",
+        f"Seconds per valid assembly (valid found in brackets; {protocol_note(**protocol)}). Trained: the "
+        "shipped checkpoint, load and compile included.",
+        "",
+        "| task | trained | untrained | search solver | paper RL-Lock | paper DESIA |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.task.name} | {arm(r.trained)} | {arm(r.untrained)} | {arm(r.solver)} | "
+            f"{paper(r.task, r.task.paper_rllock_s)} | {paper(r.task, r.task.paper_desia_s)} |"
+        )
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,138 @@
+"""The `show` and `export` subcommands: pictures of an assembly, and files to make it from.
+
+`add_commands(subparsers)` adds both to the `rllock` parser; each handler takes the parsed arguments,
+raises RLLockError on bad input and returns the exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.core.verifier import Verdict, verify_labels
+from rllock.errors import RLLockError
+from rllock.files.assembly import read_assembly
+from rllock.files.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
+
+log = logging.getLogger(__name__)
+
+
+def verified(labels: np.ndarray, metadata: dict, source: str) -> Verdict:
+    """The verdict with the removal mode the assembly was made for: the one its assembly.json names, or
+    for a bare .puz the first of "straight" and "path" under which it is valid."""
+    modes = [metadata["removal"]] if metadata.get("removal") else list(REMOVAL_MODES)
+    for mode in modes:
+        verdict = verify_labels(labels, mode)
+        if verdict.valid:
+            return verdict
+    raise RLLockError(
+        f"{source} is not a valid assembly (removal={' or '.join(modes)}): "
+        f"stage {verdict.failed_stage} fails the {verdict.failed_check} check"
+    )
+
+
+def _name(source: str) -> str:
+    path = Path(source)
+    return "assembly" if path.is_dir() else path.stem
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from rllock.files import render  # imported here: matplotlib is slow to import
+
+    if not (args.png or args.gif or args.html):
+        raise RLLockError("nothing to show: give --png, --gif and/or --html")
+    labels, metadata = read_assembly(args.assembly)
+    if args.png:
+        render.draw_png(labels, args.png, metadata.get("removal"))
+        log.info("wrote %s", args.png)
+    if args.gif or args.html:
+        verdict = verified(labels, metadata, args.assembly)
+        if args.gif:
+            render.write_gif(labels, verdict, args.gif)
+            log.info("wrote %s", args.gif)
+        if args.html:
+            render.write_html(labels, verdict, args.html)
+            log.info("wrote %s", args.html)
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    labels, metadata = read_assembly(args.assembly)
+    if args.format in MESH_FORMATS:
+        if 0 < args.voxel_size <= args.gap:
+            # The gap has a default, so a user who only made voxels small must learn which flag to change.
+            raise RLLockError(
+                f"--gap {args.gap:g} mm must be smaller than --voxel-size {args.voxel_size:g} "
+                "mm: give a smaller --gap (0 for none)"
+            )
+        paths = write_meshes(labels, args.format, args.out, args.voxel_size, args.gap)
+        log.info("wrote %d %s meshes to %s", len(paths), args.format.upper(), args.out)
+    else:
+        name = _name(args.assembly)
+        path = write_xmpuzzle(
+            labels, verified(labels, metadata, args.assembly), Path(args.out) / f"{name}.xmpuzzle", title=name
+        )
+        log.info("wrote %s", path)
+    return 0
+
+
+def _millimetres(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of millimetres, got {text!r}") from None
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "show",
+        help="draw an assembly: PNG picture, GIF animation, interactive HTML page",
+        description="Draw an assembly (assembly.json, its folder, or a .puz file). The GIF and HTML follow "
+        "the verified disassembly, recomputed with the removal mode in assembly.json "
+        "(a .puz is tried with straight, then path).",
+    )
+    p.add_argument("assembly", help="assembly.json, a folder holding one, or a .puz file")
+    p.add_argument("--png", metavar="FILE", help="assembled and exploded views")
+    p.add_argument("--gif", metavar="FILE", help="the disassembly animated")
+    p.add_argument("--html", metavar="FILE", help="self-contained interactive 3D page")
+    p.set_defaults(func=cmd_show)
+
+    p = subparsers.add_parser(
+        "export",
+        help="write the pieces as OBJ/STL meshes or a BurrTools .xmpuzzle",
+        description="obj/stl: one watertight mesh per piece (OUT/piece_NN.stl), in millimetres, in its "
+        "assembled position; --gap shrinks each piece by GAP/2 on every face that touches "
+        "another piece or the outside, so neighbouring pieces have GAP between them (default "
+        f"{PRINT_GAP:g} mm, a printing clearance that also keeps STL files watertight when "
+        "voxels of a piece touch only along an edge; --gap 0 gives the exact shape). "
+        "xmpuzzle: a BurrTools puzzle (OUT/NAME.xmpuzzle) with the pieces, the shape and this "
+        "assembly with its disassembly as the solution.",
+    )
+    p.add_argument("assembly", help="assembly.json, a folder holding one, or a .puz file")
+    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument(
+        "--voxel-size",
+        type=_millimetres,
+        default=10.0,
+        metavar="MM",
+        help="edge of one voxel in mm (default 10)",
+    )
+    p.add_argument(
+        "--gap",
+        type=_millimetres,
+        default=PRINT_GAP,
+        metavar="MM",
+        help=f"clearance between neighbouring pieces in mm (default {PRINT_GAP:g}, for FDM "
+        "printing; any gap > 0 parts voxels of a piece that touch only along an edge, so STL "
+        "files stay watertight once a slicer welds vertices; 0: exact shape, and such STL "
+        "edges are non-manifold)",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.set_defaults(func=cmd_export)

@@ -1,0 +1,247 @@
+"""Orbax checkpoints of the learner, and what they remember about their task.
+
+A training run's log directory holds `checkpoints/<step>/` (the latest few) and `best/<step>/` (the
+checkpoint with the best validation success rate). Each step directory has `state/` (params, optimizer
+state, step, PRNG key: an orbax StandardSave, restored device-independently against an abstract tree
+built on this host) and `meta/metadata` (JSON, `meta`): the task identity, the run's whole config (the
+one document that both `--resume` and `generate` read), the validation score and the run's counters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from rllock.config import TrainConfig, from_flat, from_json
+from rllock.core.env import Task, make_task
+from rllock.core.shapes import from_xfastest, grid_sha256, to_xfastest
+from rllock.core.verifier import CHECKER_VERSION
+from rllock.errors import RLLockError
+
+FORMAT = "rllock-checkpoint"
+META_VERSION = 2
+# Trained checkpoints shipped inside the package (see rllock.search.pretrained), reached by name.
+SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
+SHIPPED_NAME = re.compile(r"^[a-z][a-z0-9]*(-k[0-9]+)?$")
+
+
+def shipped_names(folder: Path | None = None) -> list[str]:
+    """The names of the shipped checkpoints (in `folder`, default `SHIPPED`)."""
+    folder = SHIPPED if folder is None else folder
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if (p / "meta" / "metadata").is_file())
+
+
+def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = None) -> TrainConfig:
+    """The config of the training run in `logdir`, read from its newest readable checkpoint, with
+    `minutes` more to train (and a new step limit, when given)."""
+    for step in saved_steps(logdir / "checkpoints")[::-1]:
+        try:
+            meta = read_meta(logdir / "checkpoints" / str(step))
+        except RLLockError:
+            continue
+        config = (
+            from_json(TrainConfig, meta["config"])
+            if "config" in meta
+            else from_flat(TrainConfig, meta["train"])
+        )
+        limit = max_learner_steps if max_learner_steps is not None else config.max_learner_steps
+        return dataclasses.replace(config, logdir=str(logdir), minutes=minutes, max_learner_steps=limit)
+    raise RLLockError(
+        f"cannot resume {logdir}: it holds no readable checkpoint (start it again without --resume)"
+    )
+
+
+def meta(
+    config: dict,
+    task: Task | dict,
+    step: int,
+    validation: dict | None,
+    counters: dict,
+    sessions: list[dict] | None = None,
+) -> dict:
+    """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas;
+    `task`: the run's task, or the identity of a multi-task run (`rllock.core.tasks.TaskSet.identity`);
+    `sessions`: the `provenance` of each process that trained the run (one more per resume)."""
+    return {
+        "format": FORMAT,
+        "version": META_VERSION,
+        "step": step,
+        "task": task if isinstance(task, dict) else task_identity(task, config["net"]["canvas"]),
+        "config": config,
+        "validation": validation,
+        "counters": counters,
+        "sessions": sessions or [],
+    }
+
+
+def _commit() -> str | None:
+    """The git commit of this source tree (with "-dirty" when it has changes), or None outside git."""
+    root = Path(__file__).resolve().parents[2]
+    # close_fds=False lets subprocess use posix_spawn: no fork in a process where JAX runs threads.
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            close_fds=False,
+        )
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            close_fds=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def provenance() -> dict:
+    """What made a checkpoint, for the record: command, commit, machine and date."""
+    device = jax.devices()[0]
+    return {
+        "command": " ".join(["rllock", *sys.argv[1:]]),
+        "commit": _commit(),
+        "machine": f"{os.cpu_count()} x {_cpu_model()}, {device.platform} ({device.device_kind})",
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+
+
+def task_identity(task: Task, canvas: int) -> dict:
+    """What a checkpoint is for: loading it for anything else is an error."""
+    grid = task.topology.grid
+    return {
+        "shape": task.shape_name,
+        "dimensions": list(grid.shape),
+        "grid": [int(v) for v in to_xfastest(grid.astype(np.int8))],
+        "grid_sha256": grid_sha256(grid),
+        "pieces": task.pieces,
+        "removal": task.removal,
+        "canvas": canvas,
+        "checker_version": CHECKER_VERSION,
+    }
+
+
+def task_from_identity(identity: dict) -> Task:
+    grid = from_xfastest(np.asarray(identity["grid"]), tuple(identity["dimensions"])) != 0
+    return make_task(grid, int(identity["pieces"]), identity["removal"], name=identity["shape"])
+
+
+def check_same_task(saved: dict, wanted: dict, where: Path) -> None:
+    for key in ("tasks", "grid_sha256", "pieces", "removal", "canvas", "checker_version"):
+        if saved.get(key) != wanted.get(key):
+            raise RLLockError(
+                f"checkpoint {where} was made for another task: {key} is {saved.get(key)!r} there, "
+                f"{wanted.get(key)!r} here (shape {saved.get('shape')!r}, K={saved.get('pieces')})"
+            )
+
+
+def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(
+        directory.absolute(),
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+        item_names=("state", "meta"),
+    )
+
+
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None:
+    """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
+    if step in mngr.all_steps():
+        mngr.delete(step)
+    mngr.save(
+        step,
+        args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+        force=True,
+    )
+    mngr.wait_until_finished()
+
+
+def saved_steps(folder: Path) -> list[int]:
+    """The steps saved in a manager's folder, ascending (none when it does not exist)."""
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit() and p.is_dir())
+
+
+def find_step_dir(path: str | Path, shipped: Path | None = None) -> Path:
+    """A step directory from a run's log directory (its best checkpoint, else its latest), a
+    checkpoints folder (its latest step), a step directory itself, or the name of a shipped checkpoint
+    (`rllock pretrained`) where no such path exists."""
+    path = Path(path)
+    shipped = SHIPPED if shipped is None else shipped
+    if not path.exists() and SHIPPED_NAME.match(str(path)) and str(path) in shipped_names(shipped):
+        path = shipped / str(path)
+    if not path.is_dir():
+        names = ", ".join(shipped_names(shipped)) or "none"
+        raise RLLockError(f"no such checkpoint directory or shipped checkpoint: {path} (shipped: {names})")
+    if (path / "meta").is_dir() and (path / "state").is_dir():
+        return path
+    for folder in (path / "best", path / "checkpoints", path):
+        steps = saved_steps(folder)
+        if steps:
+            return folder / str(steps[-1])
+    raise RLLockError(
+        f"{path} holds no RL-Lock checkpoint (expected best/, checkpoints/ or a step directory)"
+    )
+
+
+def read_meta(step_dir: Path) -> dict:
+    try:
+        meta = json.loads((step_dir / "meta" / "metadata").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {exc}") from None
+    if meta.get("format") != FORMAT:
+        raise RLLockError(f"{step_dir} is not an RL-Lock checkpoint")
+    return meta
+
+
+def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any:
+    """The state saved in `step_dir`, with the structure, shapes and dtypes of `template` (arrays or
+    `jax.eval_shape` structs), placed on this host's default device (so a GPU-trained checkpoint loads on
+    a CPU-only machine). With `partial`, `template` may name a subtree of what was saved, such as
+    {"params": ...}: only that is read."""
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    abstract = jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), template
+    )
+    path = (step_dir / "state").absolute()
+    try:
+        if partial:
+            args = ocp.args.PyTreeRestore(
+                item=abstract,
+                partial_restore=True,
+                restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+            )
+            return ocp.PyTreeCheckpointer().restore(path, args=args)
+        return ocp.StandardCheckpointer().restore(path, abstract)
+    except Exception as exc:  # orbax raises many kinds of errors for damaged files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {first[:200]}") from None

@@ -1,0 +1,294 @@
+"""Batched inference from a checkpoint: the paper's protocol (batches of episodes until C valid
+assemblies or the time limit), every result verified before it is written.
+
+Round r of a protocol with seed s plays one batch with PRNG key fold_in(key(s), r) and node seed
+derive_seed(s, r), split into lockstep groups searched in threads (`local_groups`: one per core on a
+CPU, one on a GPU; one per Ray actor of one core in `orchestration.generate`). The same seed and group
+count give the same episodes; on Ray, which rounds finish first also decides which assemblies are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import jax
+from tqdm import tqdm
+
+from rllock.config import MCTSConfig, NetConfig, from_json
+from rllock.core.env import Task, assembly_key, final_labels
+from rllock.core.verifier import CHECKER_VERSION
+from rllock.errors import RLLockError
+from rllock.files import checkpoint as ckpt
+from rllock.files.assembly import PictureWriter, write_assembly
+from rllock.search.base import Episode, Player, derive_seed
+from rllock.search.mcts import play_groups
+from rllock.search.methods import players
+from rllock.search.network import fit_canvas, init_params
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Policy:
+    """A network and the search settings it was trained with, for one task."""
+
+    task: Task
+    net: NetConfig  # with a concrete canvas
+    mcts: MCTSConfig
+    method: str  # rllock.config.METHODS: what one search action is
+    params: dict
+    source: str  # checkpoint path, or "untrained (seed N)"
+    step: int
+
+
+def _configs(meta: dict) -> tuple[NetConfig, MCTSConfig]:
+    if "config" in meta:
+        return from_json(NetConfig, meta["config"]["net"]), from_json(MCTSConfig, meta["config"]["mcts"])
+    return from_json(NetConfig, meta["net"]), from_json(MCTSConfig, meta["mcts"])  # metadata version 1
+
+
+def load_network(path: str | Path) -> tuple[Path, dict, NetConfig, MCTSConfig, dict]:
+    """(step folder, metadata, network config, search config, parameters) of a checkpoint (a run's log
+    directory: its best checkpoint; or a shipped name). Only the parameters are read, against a template
+    from `jax.eval_shape`."""
+    step_dir = ckpt.find_step_dir(Path(path))
+    meta = ckpt.read_meta(step_dir)
+    net, mcts = _configs(meta)
+    template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
+    params = ckpt.restore_like(step_dir, template, partial=True)["params"]
+    return step_dir, meta, net, mcts, params
+
+
+def is_multitask(meta: dict) -> bool:
+    """Whether a checkpoint's network was trained for many tasks (`rllock train --tasks`)."""
+    return "tasks" in meta["task"]
+
+
+def check_fits(task: Task, saved: dict, where: Path) -> None:
+    """A task a multi-task checkpoint can serve: on its canvas, with its removal mode and checkers."""
+    fit_canvas(task, NetConfig(canvas=saved["canvas"]), f"checkpoint {where}")
+    for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
+        if saved.get(key) != here:
+            raise RLLockError(f"checkpoint {where} was made for {key} {saved.get(key)!r}, not {here!r}")
+
+
+def load_policy(path: str | Path, expect: dict | None = None, *, task: Task | None = None) -> Policy:
+    """The policy in a checkpoint (a run's log directory: its best checkpoint; or a shipped name).
+    A single-task checkpoint plays its own task; `expect`, a task identity, must match it. A multi-task
+    checkpoint plays `task`, which must fit its canvas."""
+    step_dir, meta, net, mcts, params = load_network(path)
+    method = meta.get("config", {}).get("method", "rl-lock")
+    if is_multitask(meta):
+        if task is None:
+            raise RLLockError(
+                f"checkpoint {step_dir} serves many tasks ({meta['task']['tasks']}): name one with "
+                "--shape and --pieces"
+            )
+        check_fits(task, meta["task"], step_dir)
+    else:
+        if expect is not None:
+            ckpt.check_same_task(meta["task"], expect, step_dir)
+        task = ckpt.task_from_identity(meta["task"])
+    return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
+
+
+def check_simulations(simulations: int | None) -> None:
+    if simulations is not None and simulations < 1:
+        raise RLLockError(f"--simulations must be at least 1, got {simulations}")
+
+
+def with_simulations(policy: Policy, simulations: int | None) -> Policy:
+    """`policy` searching with `simulations` per decision (None: the number it was trained with). More
+    simulations cost proportionally more per batch and can find far more valid assemblies per episode
+    than the training budget does (docs/benchmarks.md)."""
+    if simulations is None:
+        return policy
+    if policy.method == "ppo":
+        raise RLLockError("--simulations: a ppo checkpoint runs no search")
+    check_simulations(simulations)
+    return dataclasses.replace(policy, mcts=dataclasses.replace(policy.mcts, simulations=simulations))
+
+
+def untrained_like(policy: Policy, seed: int) -> Policy:
+    """The same network and search with freshly initialised weights: the baseline learning must beat."""
+    return Policy(
+        policy.task,
+        policy.net,
+        policy.mcts,
+        policy.method,
+        init_params(policy.net, jax.random.PRNGKey(seed)),
+        f"untrained (seed {seed})",
+        0,
+    )
+
+
+def local_groups() -> int:
+    """Lockstep groups for a batch in this process: one per core on a CPU, where the groups' samplers
+    and networks overlap (`mcts.play_groups`); one on a GPU, which wants the whole batch at once."""
+    return (os.cpu_count() or 1) if jax.default_backend() == "cpu" else 1
+
+
+def searchers_for(policy: Policy, batch: int, groups: int) -> list[Player]:
+    return players(policy.method, policy.net, policy.mcts, policy.task, batch, groups)
+
+
+def play_round(group_searchers: list[Player], policy: Policy, seed: int, round_: int) -> list[Episode]:
+    """Round `round_` of the protocol with seed `seed` (module docstring)."""
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
+    return play_groups(group_searchers, policy.params, policy.task, key, seed=derive_seed(seed, round_))
+
+
+@dataclass(frozen=True)
+class GenerateResult:
+    valid: int
+    episodes: int
+    seconds: float
+    time_per_valid_s: float | None
+
+    @property
+    def success_rate(self) -> float:
+        return self.valid / max(self.episodes, 1)
+
+
+class Collector:
+    """Keeps the distinct valid assemblies of finished rounds, up to `count`, and writes each (verified)
+    under `out` when given."""
+
+    def __init__(
+        self,
+        policy: Policy,
+        *,
+        count: int,
+        batch: int,
+        seed: int,
+        out: Path | None,
+        picture: PictureWriter | None,
+        progress: bool,
+    ):
+        self.policy, self.count, self.batch, self.seed, self.out, self.picture = (
+            policy,
+            count,
+            batch,
+            seed,
+            out,
+            picture,
+        )
+        self.seen: set[bytes] = set()
+        self.episodes = 0
+        task = policy.task
+        self.bar = tqdm(
+            total=count,
+            desc=f"generate {task.shape_name} K={task.pieces}",
+            unit="assembly",
+            disable=None if progress else True,
+        )
+
+    @property
+    def done(self) -> bool:
+        return len(self.seen) >= self.count
+
+    def take(self, episodes: list[Episode], batch_seconds: float) -> None:
+        task = self.policy.task
+        self.episodes += len(episodes)
+        for episode in episodes:
+            if not episode.success or self.done:
+                continue
+            labels = final_labels(task, episode.final)
+            key = assembly_key(labels)
+            if key in self.seen:
+                continue
+            self.seen.add(key)
+            self.bar.update(1)
+            if self.out is not None:
+                write_assembly(
+                    self.out / f"assembly_{len(self.seen):03d}",
+                    task.topology.to_grid(labels),
+                    removal=task.removal,
+                    shape=task.shape_name,
+                    method={
+                        "name": self.policy.method,
+                        "checkpoint": self.policy.source,
+                        "step": self.policy.step,
+                        "batch": self.batch,
+                        # PPO samples from the policy at temperature 1: it has no search settings.
+                        **({"temperature": 1.0} if self.policy.method == "ppo" else asdict(self.policy.mcts)),
+                    },
+                    seed=self.seed,
+                    timings={"batch_seconds": round(batch_seconds, 3)},
+                    picture=self.picture,
+                )
+
+    def result(self, seconds: float) -> GenerateResult:
+        self.bar.close()
+        valid = len(self.seen)
+        return GenerateResult(valid, self.episodes, seconds, seconds / valid if valid else None)
+
+
+def generate(
+    policy: Policy,
+    *,
+    count: int,
+    batch: int,
+    time_limit: float,
+    seed: int,
+    out: Path | None = None,
+    picture: PictureWriter | None = None,
+    progress: bool = True,
+) -> GenerateResult:
+    """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
+    seconds (a round that has started finishes), in this process."""
+    start = time.perf_counter()
+    group_searchers = searchers_for(policy, batch, local_groups())
+    collector = Collector(
+        policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
+    )
+    round_ = 0
+    while not collector.done and time.perf_counter() - start < time_limit:
+        t0 = time.perf_counter()
+        collector.take(play_round(group_searchers, policy, seed, round_), time.perf_counter() - t0)
+        round_ += 1
+    return collector.result(time.perf_counter() - start)
+
+
+@dataclass(frozen=True)
+class SuccessRate:
+    valid: int  # successful episodes (duplicates counted: a rate, like training's validation)
+    episodes: int
+    seconds: float
+
+    @property
+    def rate(self) -> float:
+        return self.valid / max(self.episodes, 1)
+
+    def interval(self, z: float = 1.96) -> tuple[float, float]:
+        """Wilson's score interval for the rate (95% by default), sound near 0 and 1 too."""
+        n = max(self.episodes, 1)
+        p = self.valid / n
+        centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+        return max(centre - half, 0.0), min(centre + half, 1.0)
+
+
+def success_rate(policy: Policy, *, episodes: int, batch: int, seed: int) -> SuccessRate:
+    """The fraction of valid episodes over rounds 0.. of the protocol with `seed` (`play_round`), at least
+    `episodes` in all: a validation far larger than training's, with the same seeds for every policy."""
+    for flag, value in (("--episodes", episodes), ("--batch", batch)):
+        if value < 1:
+            raise RLLockError(f"{flag} must be at least 1, got {value}")
+    start = time.perf_counter()
+    group_searchers = searchers_for(policy, batch, local_groups())
+    valid = played = round_ = 0
+    with tqdm(total=episodes, desc="episodes", unit="episode", disable=None) as bar:
+        while played < episodes:
+            played_now = play_round(group_searchers, policy, seed, round_)
+            valid += sum(e.success for e in played_now)
+            played += len(played_now)
+            bar.update(len(played_now))
+            round_ += 1
+    return SuccessRate(valid, played, time.perf_counter() - start)

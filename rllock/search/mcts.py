@@ -1,0 +1,411 @@
+"""MCTS over action chunks: mctx's Gumbel MuZero, with nodes expanded on the host by the compiled sampler.
+
+The search tree (inside jit) holds only integer handles into a host-side `NodeStore`. Expanding a leaf
+calls back to the host (`jax.experimental.io_callback`): the store applies the chunk, samples M_s raw
+chunks for the child, keeps M_c accepted ones as its candidate actions, and returns the child's
+planes and candidates; the network then scores all leaves of the batch in one call. Several episodes
+run in lockstep, one batch row each, so every simulation is one network call for all of them.
+
+Rewards: 1/K per accepted chunk. A child with no candidates (a dead end) or with K-1 pieces placed
+(success) is terminal: discount 0 and value 0. Expanding below a terminal node gives reward 0.
+A non-terminal child's value is known to lie in [1/K, (K-1-i)/K] (it has an accepted candidate, and
+i pieces are placed), so the network's estimate is clipped to that range (`bounded_value`): even an
+untrained network then tells a live child from a dead end one level earlier.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import jax.numpy as jnp
+import mctx
+import numpy as np
+from jax.experimental import io_callback
+
+from rllock.config import MCTSConfig, NetConfig
+from rllock.core.env import (
+    State,
+    Task,
+    apply_chunk,
+    candidates_many,
+    compact_dtypes,
+    initial_state,
+    is_solved,
+)
+from rllock.search.base import Episode, Player, TimeSplit, derive_seed, group_sizes
+from rllock.search.network import PolicyValueNet, canvas_index, chunk_logits, encode_batch, planes_of
+
+
+class NodeStore:
+    """Search nodes on the host: states, candidate actions (as chunks of voxel numbers, [L, n]),
+    children. Subclasses say what an action is: `ChunkStore` (one whole piece, RL-Lock) and
+    `rllock.search.voxel_search.VoxelStore` (one voxel, RL-Lock_Action). With `parallel`, a simulation's
+    expansions are spread over numba's threads; without, they run on the calling thread (for several
+    stores searched in threads of their own)."""
+
+    def __init__(
+        self,
+        task: Task,
+        config: MCTSConfig,
+        canvas: int,
+        seed: int,
+        parallel: bool = True,
+        *,
+        task_planes: bool = False,
+    ):
+        self.parallel = parallel
+        self.task_planes = task_planes
+        self.task = task
+        self.config = config
+        self.canvas_idx = canvas_index(task, canvas)
+        self.canvas = canvas
+        self.rng = np.random.default_rng(seed)
+        self.states: list = []
+        self.cands: list[np.ndarray] = []
+        self.children: dict[tuple[int, int], int] = {}
+        self.times = TimeSplit()
+        self.m, self.n = self.action_shape(task, config)
+
+    @staticmethod
+    def action_shape(task: Task, config: MCTSConfig) -> tuple[int, int]:
+        """(M, n): candidate actions per node at most, voxels per action."""
+        raise NotImplementedError
+
+    def initial(self):
+        """The state an episode starts from."""
+        raise NotImplementedError
+
+    def candidates(self, states: list) -> list[np.ndarray]:
+        """Each state's candidate actions, int32[L, n] (L = 0: terminal)."""
+        raise NotImplementedError
+
+    def apply(self, state, action: np.ndarray):
+        raise NotImplementedError
+
+    def encoded_placed(self, state) -> int:
+        """The `placed` the network's encoding is given for `state` (`rllock.search.network.encode_batch`)."""
+        return state.placed
+
+    def floor(self, reward: float) -> float:
+        """What a live child reached with `reward` is known to be worth at least (`bounded_value`)."""
+        return 0.0
+
+    def add_many(self, states: list) -> list[int]:
+        """Store `states` as nodes, with their candidates; their numbers."""
+        cands = self.candidates(states)
+        first = len(self.states)
+        self.states.extend(states)
+        self.cands.extend(cands)
+        return list(range(first, len(self.states)))
+
+    def add(self, state) -> int:
+        return self.add_many([state])[0]
+
+    def terminal(self, node: int) -> bool:
+        return len(self.cands[node]) == 0
+
+    def child(self, node: int, action: int) -> int:
+        """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
+        return self.children_of([(node, action)])[0]
+
+    def children_of(self, pairs: list[tuple[int, int]]) -> list[int]:
+        """The nodes reached by (node, candidate action) pairs, expanding the new ones together."""
+        new = list(dict.fromkeys(p for p in pairs if p not in self.children))
+        if new:
+            kids = self.add_many([self.apply(self.states[n], self.cands[n][a]) for n, a in new])
+            self.children.update(zip(new, kids))
+        return [self.children[p] for p in pairs]
+
+    def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(planes [B, C, C, C, P], candidate actions as canvas indices [B, M, n], valid [B, M])."""
+        labels = np.stack([self.states[i].labels for i in nodes])
+        placed = np.array([self.encoded_placed(self.states[i]) for i in nodes])
+        chunks = np.zeros((len(nodes), self.m, self.n), np.int32)
+        valid = np.zeros((len(nodes), self.m), bool)
+        for row, i in enumerate(nodes):
+            c = self.cands[i]
+            chunks[row, : len(c)] = self.canvas_idx[c]
+            valid[row, : len(c)] = True
+        return encode_batch(self.task, labels, placed, self.canvas, self.task_planes), chunks, valid
+
+    def expand(self, nodes: np.ndarray, actions: np.ndarray):
+        """One simulation's expansion for every row: (child nodes, reward, discount, value floor and cap,
+        and the children's features). A row below a terminal node stays where it is, with reward 0."""
+        start, sampled = time.perf_counter(), self.times.sampling
+        out = self._expand(nodes.tolist(), actions.tolist())
+        self.times.host += time.perf_counter() - start - (self.times.sampling - sampled)
+        return out
+
+    def _expand(self, nodes: list[int], actions: list[int]):
+        moves = [
+            r
+            for r, (n, a) in enumerate(zip(nodes, actions))
+            if not self.terminal(n) and a < len(self.cands[n])
+        ]
+        kids = np.array(nodes, np.int32)
+        kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
+        reward = np.zeros(len(nodes), np.float32)
+        discount = np.zeros(len(nodes), np.float32)
+        floor = np.zeros(len(nodes), np.float32)
+        cap = np.zeros(len(nodes), np.float32)
+        k = self.task.pieces
+        for r in moves:
+            kid, parent = self.states[int(kids[r])], self.states[nodes[r]]
+            reward[r] = (kid.placed - parent.placed) / k
+            discount[r] = 0.0 if self.terminal(int(kids[r])) else 1.0
+            floor[r] = self.floor(float(reward[r]))
+            cap[r] = (k - 1 - kid.placed) / k
+        planes, chunks, valid = self.features(kids)
+        return kids, reward, discount, floor, cap, planes, chunks, valid
+
+    def episode(self, steps: list[tuple[int, np.ndarray, int]], last: int) -> Episode:
+        """The episode that took the decisions `steps` ((node, policy over its candidates, candidate
+        taken) each) and ended at `last`."""
+        task = self.task
+        t = len(steps)
+        label_dtype, voxel_dtype = compact_dtypes(task)
+        labels = np.zeros((t, task.size), label_dtype)
+        placed = np.zeros(t, np.int16)
+        encoded = np.zeros(t, np.int16)
+        chunks = np.zeros((t, self.m, self.n), voxel_dtype)
+        num_valid = np.zeros(t, np.int16)
+        pi = np.zeros((t, self.m), np.float32)
+        actions = np.zeros(t, np.int16)
+        for s, (node, weights, action) in enumerate(steps):
+            state, cands = self.states[node], self.cands[node]
+            labels[s] = state.labels
+            placed[s] = state.placed
+            encoded[s] = self.encoded_placed(state)
+            chunks[s, : len(cands)] = cands
+            num_valid[s] = len(cands)
+            pi[s] = weights
+            actions[s] = action
+        final = self.states[last]
+        # Only accepted pieces are rewarded (1/K each), so z_s = (placed at the end - placed at s) / K.
+        z = ((final.placed - placed) / task.pieces).astype(np.float32)
+        return Episode(
+            labels, encoded, chunks, num_valid, pi, z, final.placed == task.pieces - 1, final, actions
+        )
+
+
+class ChunkStore(NodeStore):
+    """RL-Lock's actions: whole pieces, M_c accepted chunks per node drawn by the compiled sampler."""
+
+    @staticmethod
+    def action_shape(task: Task, config: MCTSConfig) -> tuple[int, int]:
+        return config.candidates, task.piece_size
+
+    def initial(self) -> State:
+        return initial_state(self.task)
+
+    def candidates(self, states: list) -> list[np.ndarray]:
+        seeds = self.rng.integers(1 << 31, size=len(states))
+        cands = [np.zeros((0, self.task.piece_size), np.int32)] * len(states)
+        live = [i for i, s in enumerate(states) if not is_solved(self.task, s)]
+        if live:
+            start = time.perf_counter()
+            found, _ = candidates_many(
+                self.task,
+                [states[i] for i in live],
+                seeds[live],
+                num_samples=self.config.raw_samples,
+                max_candidates=self.config.candidates,
+                parallel=self.parallel,
+            )
+            self.times.sampling += time.perf_counter() - start
+            for i, c in zip(live, found):
+                cands[i] = c
+        return cands
+
+    def apply(self, state: State, action: np.ndarray) -> State:
+        return apply_chunk(state, action)
+
+    def floor(self, reward: float) -> float:
+        # A live child has an accepted candidate: one more piece is certain.
+        return 1.0 / self.task.pieces
+
+
+def bounded_value(value: jax.Array, discount: jax.Array, floor: jax.Array, cap: jax.Array) -> jax.Array:
+    """The network's value clipped to what is known of a child: 0 when terminal; otherwise at least
+    `floor` (`NodeStore.floor`: 1/K for a chunk node, which has an accepted candidate) and at most
+    `cap` ((K-1-i)/K, the pieces still to place)."""
+    return jnp.where(discount > 0, jnp.clip(value, floor, cap), 0.0)
+
+
+class Searcher:
+    """A compiled batched search for one task and action space (the network's canvas, M, n); `play`
+    gives it a fresh store of kind `space` per batch."""
+
+    def __init__(
+        self, net: PolicyValueNet, config: MCTSConfig, space: type[NodeStore], task: Task, batch: int
+    ):
+        if net.config.canvas is None:
+            raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
+        self.net = net
+        self.config = config
+        self.space = space
+        self.canvas = net.config.canvas
+        self.batch = batch
+        self.store: NodeStore | None = None
+        (m, n), c = space.action_shape(task, config), self.canvas
+        shapes = (
+            jax.ShapeDtypeStruct((batch,), jnp.int32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch,), jnp.float32),
+            jax.ShapeDtypeStruct((batch, c, c, c, planes_of(net.config)), jnp.float32),
+            jax.ShapeDtypeStruct((batch, m, n), jnp.int32),
+            jax.ShapeDtypeStruct((batch, m), jnp.bool_),
+        )
+
+        def host_expand(nodes, actions):
+            assert self.store is not None
+            return self.store.expand(np.asarray(nodes), np.asarray(actions))
+
+        def evaluate(params, planes, chunks, valid):
+            voxel_logits, value = net.apply({"params": params}, planes)
+            return chunk_logits(voxel_logits, chunks, valid), value
+
+        def recurrent_fn(params, rng_key, action, embedding):
+            del rng_key
+            kids, reward, discount, floor, cap, planes, chunks, valid = io_callback(
+                host_expand, shapes, embedding, action
+            )
+            logits, value = evaluate(params, planes, chunks, valid)
+            out = mctx.RecurrentFnOutput(
+                reward=reward,
+                discount=discount,
+                prior_logits=logits,
+                value=bounded_value(value, discount, floor, cap),
+            )
+            return out, kids
+
+        def search(params, key, roots, planes, chunks, valid):
+            logits, value = evaluate(params, planes, chunks, valid)
+            root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
+            out = mctx.gumbel_muzero_policy(
+                params,
+                key,
+                root,
+                recurrent_fn,
+                num_simulations=config.simulations,
+                invalid_actions=~valid,
+                max_depth=config.max_depth,
+                max_num_considered_actions=config.max_considered,
+                gumbel_scale=config.gumbel_scale,
+            )
+            return out.action, out.action_weights, value
+
+        self._search = jax.jit(search)
+
+    def play(
+        self,
+        params,
+        task: Task,
+        key: jax.Array,
+        *,
+        seed: int,
+        times: TimeSplit | None = None,
+        parallel: bool = True,
+    ) -> list[Episode]:
+        """`batch` episodes in lockstep from the empty state; each decision takes the search's
+        action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
+        store = self.space(
+            task, self.config, self.canvas, seed, parallel, task_planes=self.net.config.task_planes
+        )
+
+        def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            actions, weights, _ = self.search(params, sub, store, nodes)
+            return actions, weights
+
+        return play_lockstep(store, self.batch, decide, key, times)
+
+    def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
+        """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
+        self.store = store
+        start, before = time.perf_counter(), store.times.sampling + store.times.host
+        planes, chunks, valid = store.features(roots)
+        # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
+        valid[~valid.any(axis=1), 0] = True
+        action, weights, value = self._search(
+            params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid
+        )
+        action, weights, value = np.asarray(action), np.asarray(weights), np.asarray(value)
+        store.times.network += (
+            time.perf_counter() - start - (store.times.sampling + store.times.host - before)
+        )
+        return action, weights, value
+
+
+def play_lockstep(
+    store: NodeStore,
+    batch: int,
+    decide: Callable[[jax.Array, np.ndarray], tuple[np.ndarray, np.ndarray]],
+    key: jax.Array,
+    times: TimeSplit | None,
+) -> list[Episode]:
+    """`batch` episodes in lockstep from the store's initial state: `decide(key, nodes)` gives every
+    row's action and its policy over the node's candidates (rows that have ended are ignored)."""
+    nodes = np.array(store.add_many([store.initial() for _ in range(batch)]), np.int32)
+    trace: list[list[tuple[int, np.ndarray, int]]] = [[] for _ in range(batch)]
+    active = np.array([not store.terminal(n) for n in nodes])
+    while active.any():
+        key, sub = jax.random.split(key)
+        actions, weights = decide(sub, nodes)
+        rows = np.flatnonzero(active)
+        for b in rows:
+            trace[b].append((int(nodes[b]), weights[b], int(actions[b])))
+        nodes[rows] = store.children_of([(int(nodes[b]), int(actions[b])) for b in rows])
+        active[rows] = [not store.terminal(int(nodes[b])) for b in rows]
+    if times is not None:
+        times.add(store.times)
+    return [store.episode(trace[b], int(nodes[b])) for b in range(batch)]
+
+
+def play_groups(
+    searchers: Sequence[Player],
+    params,
+    task: Task,
+    key: jax.Array,
+    *,
+    seed: int,
+    times: TimeSplit | None = None,
+) -> list[Episode]:
+    """Several lockstep groups (one per searcher) played at once, one thread each: while one group's
+    network runs in XLA, another's sampler runs in numba, both without the GIL, so a worker with T cores
+    keeps them all busy with T groups. One group runs on its own with the sampler spread over numba's
+    threads. Group g uses key fold_in(key, g) and node seed derive_seed(seed, g); `times` sums over the groups
+    (thread-seconds)."""
+    if len(searchers) == 1:
+        return searchers[0].play(params, task, key, seed=seed, times=times)
+    splits = [TimeSplit() for _ in searchers]
+
+    def group(g: int) -> list[Episode]:
+        return searchers[g].play(
+            params,
+            task,
+            jax.random.fold_in(key, g),
+            seed=derive_seed(seed, g),
+            times=splits[g],
+            parallel=False,
+        )
+
+    with ThreadPoolExecutor(len(searchers)) as pool:
+        episodes = [e for batch in pool.map(group, range(len(searchers))) for e in batch]
+    if times is not None:
+        for split in splits:
+            times.add(split)
+    return episodes
+
+
+def searchers(
+    net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, episodes: int, groups: int
+) -> list[Searcher]:
+    """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
+    return [
+        Searcher(PolicyValueNet(net), config, space, task, size) for size in group_sizes(episodes, groups)
+    ]

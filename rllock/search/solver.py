@@ -1,0 +1,167 @@
+"""The search solver: randomized depth-first search with backtracking and restarts over sampled chunks.
+
+No learning. Each node samples raw chunks and keeps up to `children` distinct accepted ones in random
+order; the search backtracks when a node's children are exhausted. Search trees for this problem are
+heavy-tailed (one bad early piece can doom a whole subtree), so the search restarts from the root after
+a budget of node expansions that follows the Luby sequence (1, 1, 2, 1, 1, 2, 4, ...) times
+`restart_base`: short runs most of the time, occasionally long ones, which is within a log factor of
+the best fixed budget without knowing it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from rllock.core.env import (
+    State,
+    Task,
+    apply_chunk,
+    assembly_key,
+    distinct_subset,
+    final_labels,
+    initial_state,
+    sample_accepted,
+)
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    samples_per_node: int = 512
+    """Raw chunks sampled when a node is expanded."""
+    children: int = 8
+    """Distinct accepted chunks kept per node (tried in random order)."""
+    restart_base: int = 64
+    """Node expansions per unit of the Luby restart schedule."""
+    lookahead: bool = True
+    """Expand children as soon as their parent is, and try first the child with the most accepted
+    continuations (fail-first pruning: children with none are dropped before they are entered)."""
+
+
+@dataclass(frozen=True)
+class Found:
+    labels: np.ndarray  # int grid [x, y, z], 1..K
+    seconds: float  # time since the previous assembly (or the start)
+    expansions: int  # node expansions since the previous assembly
+
+
+def luby(i: int) -> int:
+    """The i-th term (1-based) of the Luby sequence."""
+    k = 1
+    while (1 << k) - 1 < i:
+        k += 1
+    if i == (1 << k) - 1:
+        return 1 << (k - 1)
+    return luby(i - (1 << (k - 1)) + 1)
+
+
+def _dfs(
+    task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float, target: int
+):
+    """One restart: DFS from the root for at most `budget` expansions until a state with `target`
+    placed pieces. Returns (that state or None, expansions used)."""
+    expansions = 0
+
+    def sample(state: State) -> tuple[np.ndarray, int]:
+        nonlocal expansions
+        expansions += 1
+        seed = int(rng.integers(1 << 31))
+        accepted = sample_accepted(task, state, seed=seed, num_samples=config.samples_per_node)
+        return distinct_subset(accepted, config.children, seed), len(accepted)
+
+    def children_of(state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
+        """Children in pop order (best last); their own candidates are attached under lookahead."""
+        kids = [apply_chunk(state, c) for c in chunks]
+        if not config.lookahead or state.placed + 1 == target:
+            return [(k, None) for k in kids]
+        scored = []
+        for kid in kids:
+            grand, score = sample(kid)
+            if len(grand):
+                scored.append((score, kid, grand))
+        scored.sort(key=lambda t: t[0])
+        return [(kid, grand) for _, kid, grand in scored]
+
+    root = initial_state(task)
+    stack = [children_of(root, sample(root)[0])]
+    while stack:
+        if expansions >= budget or time.monotonic() > deadline:
+            return None, expansions
+        if not stack[-1]:
+            stack.pop()
+            continue
+        child, grand = stack[-1].pop()
+        if child.placed == target:
+            return child, expansions
+        if grand is None:
+            grand = sample(child)[0]
+        stack.append(children_of(child, grand))
+    return None, expansions
+
+
+def search(
+    task: Task, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
+) -> Iterator[Found]:
+    """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
+    writing) until the time limit. Same seed, same sequence."""
+    rng = np.random.default_rng(seed)
+    start = time.monotonic()
+    deadline = start + time_limit
+    seen: set[bytes] = set()
+    last, used, restart = start, 0, 0
+    while time.monotonic() < deadline:
+        restart += 1
+        state, expansions = _dfs(
+            task, rng, config, config.restart_base * luby(restart), deadline, task.pieces - 1
+        )
+        used += expansions
+        if state is None:
+            continue
+        labels = final_labels(task, state)
+        key = assembly_key(labels)
+        if key in seen:
+            continue
+        seen.add(key)
+        now = time.monotonic()
+        yield Found(task.topology.to_grid(labels), now - last, used)
+        last, used, restart = now, 0, 0
+
+
+def reach_depth(
+    task: Task, placed: int, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
+) -> State | None:
+    """A valid state with `placed` pieces (a seeded mid-episode state), or None within the time limit."""
+    rng = np.random.default_rng(seed)
+    deadline = time.monotonic() + time_limit
+    restart = 0
+    while time.monotonic() < deadline:
+        restart += 1
+        state, _ = _dfs(task, rng, config, config.restart_base * luby(restart), deadline, placed)
+        if state is not None:
+            return state
+    return None
+
+
+def solve(
+    task: Task,
+    *,
+    count: int = 1,
+    time_limit: float = 60.0,
+    seed: int = 0,
+    config: SearchConfig = SearchConfig(),
+) -> list[np.ndarray]:
+    """Up to `count` distinct assemblies of `task` found by the search within `time_limit` seconds, as
+    label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier."""
+    from rllock.core.verifier import verify_labels
+
+    found = []
+    for f in search(task, seed=seed, time_limit=time_limit, config=config):
+        if not verify_labels(f.labels, task.removal).valid:
+            raise AssertionError("the search returned an assembly the verifier rejects")
+        found.append(f.labels)
+        if len(found) >= count:
+            break
+    return found
