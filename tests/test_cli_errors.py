@@ -106,7 +106,7 @@ def test_train_switches_parse_both_ways():
 
 
 def test_learning_ratio_and_its_bound_when_the_baseline_finds_nothing():
-    from orchestration.cli.main import learning_ratio
+    from orchestration.bench.learning import learning_ratio
 
     assert learning_ratio(10.0, 40.0, 200.0) == (0.25, None)
     assert learning_ratio(30.0, None, 300.0) == (None, 0.1)  # untrained: none in 300 s

@@ -1,21 +1,34 @@
-"""The `show` and `export` subcommands: pictures of an assembly, and files to make it from.
+"""The assembly commands: `verify` and `solve` (no training needed), `show` (pictures) and `export`
+(files to make an assembly from).
 
-`add_commands(subparsers)` adds both to the `rllock` parser; each handler takes the parsed arguments,
+`add_commands(subparsers)` adds them to the `rllock` parser; each handler takes the parsed arguments,
 raises RLLockError on bad input and returns the exit status.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import sys
+import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from orchestration.cli.common import (
+    add_protocol_args,
+    add_task_args,
+    assemblies_word,
+    fresh_out,
+    picture_writer,
+)
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.core.verifier import Verdict, verify_labels
 from rllock.errors import RLLockError
-from rllock.files.assembly import read_assembly
+from rllock.files.assembly import read_assembly, write_assembly
 from rllock.files.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
 
 log = logging.getLogger(__name__)
@@ -33,6 +46,67 @@ def verified(labels: np.ndarray, metadata: dict, source: str) -> Verdict:
         f"{source} is not a valid assembly (removal={' or '.join(modes)}): "
         f"stage {verdict.failed_stage} fails the {verdict.failed_check} check"
     )
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from rllock.core.verifier import verify_labels
+
+    labels, meta = read_assembly(args.file)
+    verdict = verify_labels(labels, args.removal or meta.get("removal") or "straight")
+    if args.json:
+        sys.stdout.write(json.dumps({"file": str(args.file), **verdict.to_json()}) + "\n")
+    elif verdict.valid:
+        sys.stdout.write(f"valid: {verdict.pieces} pieces, removal={verdict.removal}, key = piece 1\n")
+    else:
+        sys.stdout.write(
+            f"invalid: stage {verdict.failed_stage} fails the {verdict.failed_check} check "
+            f"(removal={verdict.removal})\n"
+        )
+    return 0 if verdict.valid else 1
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    from rllock.core.env import make_task
+    from rllock.search.solver import SearchConfig, search
+
+    task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
+    config = SearchConfig()
+    out = fresh_out(args.out)
+    picture = picture_writer()
+    start = time.perf_counter()
+    found = 0
+    with tqdm(
+        total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly", disable=None
+    ) as bar:
+        for f in search(task, seed=args.seed, time_limit=args.time_limit, config=config):
+            found += 1
+            folder = out / f"assembly_{found:03d}"
+            write_assembly(
+                folder,
+                f.labels,
+                removal=task.removal,
+                shape=task.shape_name,
+                method={"name": "search", **asdict(config)},
+                seed=args.seed,
+                timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
+                picture=picture,
+            )
+            log.info("wrote %s (%.2f s)", folder, f.seconds)
+            bar.update(1)
+            if found >= args.count:
+                break
+    elapsed = time.perf_counter() - start
+    if found == 0:
+        sys.stdout.write(
+            f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s\n"
+        )
+        return 1
+    sys.stdout.write(
+        f"solve: {found} valid {assemblies_word(found)} of {task.shape_name} K={task.pieces} "
+        f"in {elapsed:.2f} s: "
+        f"{elapsed / found:.3f} s per valid assembly -> {out}\n"
+    )
+    return 0
 
 
 def _name(source: str) -> str:
@@ -91,6 +165,23 @@ def _millimetres(text: str) -> float:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("verify", help="check every stage of an assembly (.puz or assembly.json)")
+    p.add_argument("file")
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default=None,
+        help="default: the mode an assembly.json names, else straight",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_verify)
+
+    p = subparsers.add_parser("solve", help="find assemblies by randomized search (no training needed)")
+    add_task_args(p)
+    add_protocol_args(p, count=1, time_limit=60.0, batch=False, seed=False)
+    p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
+    p.set_defaults(func=cmd_solve)
+
     p = subparsers.add_parser(
         "show",
         help="draw an assembly: PNG picture, GIF animation, interactive HTML page",

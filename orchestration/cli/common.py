@@ -1,0 +1,167 @@
+"""What several commands share: the protocol and task flags, checked output folders, checkpoint loading.
+
+Each flag that more than one command takes is defined here once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.errors import RLLockError
+
+
+def positive_float(text: str) -> float:
+    value = float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def add_protocol_args(
+    p: argparse.ArgumentParser,
+    *,
+    count: int | None,
+    time_limit: float | None,
+    batch: bool = True,
+    seed: bool = True,
+    per: str = "",
+) -> None:
+    """The paper's inference protocol, for every command that runs it: batches of --batch episodes until
+    --count valid assemblies or --time-limit seconds (each `per` unit when given), from --seed. A None
+    default leaves that flag out."""
+    each = f" per {per}" if per else ""
+    if count is not None:
+        p.add_argument("--count", type=int, default=count, help=f"valid assemblies to find{each}")
+    if batch:
+        p.add_argument(
+            "--batch", type=int, default=64, help="episodes per batch (one network call per simulation)"
+        )
+    if time_limit is not None:
+        p.add_argument("--time-limit", type=positive_float, default=time_limit, help=f"seconds{each}")
+    if seed:
+        p.add_argument("--seed", type=int, default=0)
+
+
+def add_task_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--shape",
+        required=True,
+        help="cubeN, box:WxHxD, ring, a .puz/.vol/.npy file, or a closed .stl/.obj mesh",
+    )
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        help="for .stl/.obj shapes: at most this many voxels along the longest side (default 8)",
+    )
+    p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default="straight",
+        help="straight: one axis slide per piece (default); path: DESIA's multi-move test",
+    )
+    p.add_argument("--seed", type=int, default=0)
+
+
+def assemblies_word(count: int) -> str:
+    return "assembly" if count == 1 else "assemblies"
+
+
+def fresh_out(path: str) -> Path:
+    """An output folder that holds no earlier results (they would be overwritten or mixed up)."""
+    out = Path(path)
+    if out.exists() and (not out.is_dir() or any(out.glob("assembly_*"))):
+        raise RLLockError(f"--out {out} already holds results; choose another folder")
+    return out
+
+
+def picture_writer():
+    from rllock.files.render import write_picture  # matplotlib: loaded only where pictures are drawn
+
+    return write_picture
+
+
+def ray_on_loopback_unless(address: str | None) -> None:
+    """A Ray instance started here serves this machine only: bind it to loopback, not to the host's
+    outward address (Ray reads this setting when it is imported). A cluster run keeps Ray's default."""
+    if not address:
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
+def add_simulations_arg(p: argparse.ArgumentParser, arms: str = "") -> None:
+    p.add_argument(
+        "--simulations",
+        type=int,
+        default=None,
+        help=f"search simulations per decision{arms} (default: the checkpoint's own, as it was trained)",
+    )
+
+
+def add_checkpoint_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--checkpoint",
+        required=True,
+        help="a training run's log directory (its best checkpoint), one checkpoint directory, or the name "
+        "of a shipped checkpoint (rllock pretrained)",
+    )
+    add_protocol_args(p, count=5, time_limit=3600.0)
+    add_checkpoint_task_args(p)
+
+
+def add_checkpoint_task_args(p: argparse.ArgumentParser) -> None:
+    """The search budget and the task (`load_for`): a multi-task checkpoint's task, or a check on a
+    single-task checkpoint's own."""
+    add_simulations_arg(p)
+    p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
+    p.add_argument(
+        "--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K"
+    )
+    p.add_argument(
+        "--removal",
+        choices=REMOVAL_MODES,
+        default=None,
+        help="optional: fail unless the checkpoint uses this removal mode",
+    )
+    p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
+
+
+def expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
+    """The identity of the task named on the command line (if one was named), to compare with the
+    checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own."""
+    if args.shape is None and args.pieces is None:
+        return None
+    if args.shape is None or args.pieces is None:
+        raise RLLockError("give both --shape and --pieces to check the checkpoint's task, or neither")
+    from rllock.core.env import make_task
+    from rllock.files.checkpoint import task_identity
+
+    task = make_task(args.shape, args.pieces, args.removal or saved["removal"], resolution=args.resolution)
+    return task_identity(task, saved["canvas"])
+
+
+def load_for(args: argparse.Namespace):
+    """The policy for `generate`, `bench learning` and `bench success`: a single-task checkpoint's own
+    task (checked against --shape and --pieces when named), or the named task for a multi-task
+    checkpoint; searching with --simulations when given."""
+    from rllock.core.env import make_task
+    from rllock.files.checkpoint import find_step_dir, read_meta
+    from rllock.search.inference import is_multitask, load_policy, with_simulations
+
+    if args.batch < 1:
+        raise RLLockError(f"--batch must be at least 1, got {args.batch}")
+    meta = read_meta(find_step_dir(Path(args.checkpoint)))
+    task, expect = None, None
+    if is_multitask(meta):
+        if args.shape is None or args.pieces is None:
+            raise RLLockError(
+                f"checkpoint {args.checkpoint} serves many tasks: name one with --shape and --pieces"
+            )
+        removal = args.removal or meta["task"]["removal"]
+        task = make_task(args.shape, args.pieces, removal, resolution=args.resolution)
+    else:
+        expect = expected_task(args, meta["task"])
+    return with_simulations(load_policy(args.checkpoint, expect, task=task), args.simulations)

@@ -1,0 +1,179 @@
+"""The training commands: `train` (self-play on Ray), `generate` (assemblies from a checkpoint) and
+`pretrained` (the checkpoints shipped by name).
+
+`add_commands(subparsers)` adds them to the `rllock` parser; each handler takes the parsed arguments,
+raises RLLockError on bad input and returns the exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from orchestration.cli.common import (
+    add_checkpoint_args,
+    assemblies_word,
+    fresh_out,
+    load_for,
+    picture_writer,
+    ray_on_loopback_unless,
+)
+from orchestration.cli.flags import add_flags, from_flags
+from rllock.config import EVALUATION_MODES, METHODS, TrainConfig
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.errors import RLLockError
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    if args.resume:
+        from rllock.files.checkpoint import run_config
+
+        config = run_config(Path(args.resume), minutes=args.minutes, max_learner_steps=args.max_learner_steps)
+    else:
+        config = from_flags(TrainConfig, args)
+        config.validate()
+    ray_on_loopback_unless(config.address)
+    from orchestration.train import train
+
+    result = train(config, resume=bool(args.resume))
+    if result["interrupted"]:
+        sys.stdout.write(
+            f"train: stopped at learner step {result['steps']}; resume with: "
+            f"rllock train --resume {result['logdir']}\n"
+        )
+        return 130
+    val = result["validation"]
+    last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
+    best = result["best_success_rate"]
+    sys.stdout.write(
+        f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
+        f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
+        f"{result['seconds']:.0f} s; last validation {last}, best "
+        f"{'none yet' if best < 0 else f'{100 * best:.1f}%'}\n"
+        f"checkpoints: {result['logdir']}/best (best validated) and {result['logdir']}/checkpoints (latest)\n"
+        f"watch it: tensorboard --logdir {result['logdir']}\n"
+    )
+    return 0
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    out = fresh_out(args.out)
+    if args.actors < 0:
+        raise RLLockError(f"--actors must be >= 0, got {args.actors}")
+    if args.address and not args.actors:
+        raise RLLockError("--address needs --actors N: generation joins a Ray cluster only with actors")
+    policy = load_for(args)
+    settings = dict(
+        count=args.count,
+        batch=args.batch,
+        time_limit=args.time_limit,
+        seed=args.seed,
+        out=out,
+        picture=picture_writer(),
+    )
+    if args.actors:
+        ray_on_loopback_unless(args.address)
+        from orchestration.generate import generate_on_ray
+
+        result = generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
+    else:
+        from rllock.search.inference import generate
+
+        result = generate(policy, **settings)
+    task = policy.task
+    if result.valid == 0:
+        sys.stdout.write(
+            f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
+            f"episodes ({result.seconds:.1f} s)\n"
+        )
+        return 1
+    sys.stdout.write(
+        f"generate: {result.valid} valid {assemblies_word(result.valid)} of {task.shape_name} "
+        f"K={task.pieces} from {result.episodes} episodes in {result.seconds:.1f} s: "
+        f"{result.time_per_valid_s:.2f} s per valid assembly -> {args.out}\n"
+    )
+    return 0
+
+
+def cmd_pretrained(args: argparse.Namespace) -> int:
+    from rllock.files.checkpoint import shipped_names
+    from rllock.search import pretrained
+
+    if args.ship is not None:
+        if args.name is None:
+            raise RLLockError("--ship needs --name, the name to ship the checkpoint under (e.g. cube4-k9)")
+        target = pretrained.ship(Path(args.ship), args.name)
+        size = sum(f.stat().st_size for f in target.rglob("*") if f.is_file())
+        sys.stdout.write(f"shipped {args.name}: {target} ({size / 2**20:.1f} MiB)\n")
+        return 0
+    rows = [pretrained.describe(name) for name in shipped_names()]
+    if args.json:
+        sys.stdout.write(json.dumps(rows) + "\n")
+        return 0
+    if not rows:
+        sys.stdout.write("no shipped checkpoints\n")
+        return 0
+
+    def rate(row: dict) -> str:
+        if row["validation_success"] is None:
+            return "-"
+        return f"{100 * row['validation_success']:.1f}% of {row['validation_episodes']}"
+
+    lines = [
+        "| name | task | canvas | simulations | training (min) | trained on | learner steps "
+        "| validation success | commit |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        commit = (r["commit"] or "-")[:12]
+        minutes = f"{r['training_minutes']} from {r['init']}" if r["init"] else r["training_minutes"]
+        lines.append(
+            f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {minutes} | "
+            f"{pretrained.machine_summary(r['machine'])} | {r['learner_steps']} | {rate(r)} | {commit} |"
+        )
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
+    add_flags(
+        p,
+        TrainConfig,
+        required_unless="--resume",
+        choices={"removal": REMOVAL_MODES, "evaluation": EVALUATION_MODES, "method": METHODS},
+    )
+    p.add_argument(
+        "--resume",
+        metavar="LOGDIR",
+        default=None,
+        help="continue the run in LOGDIR with its saved config; --minutes is the time to add, "
+        "--max-learner-steps a new step limit",
+    )
+    p.set_defaults(func=cmd_train)
+
+    p = subparsers.add_parser("generate", help="assemblies from a trained checkpoint (batched MCTS)")
+    add_checkpoint_args(p)
+    p.add_argument(
+        "--actors",
+        type=int,
+        default=0,
+        help="play the rounds on this many Ray actors, one core each (default 0: in this process, "
+        "on all cores)",
+    )
+    p.add_argument("--address", default=None, help="with --actors: join this Ray cluster (HOST:PORT or auto)")
+    p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
+    p.set_defaults(func=cmd_generate)
+
+    p = subparsers.add_parser("pretrained", help="the trained checkpoints shipped with RL-Lock, by name")
+    p.add_argument("--json", action="store_true", help="print one JSON list")
+    p.add_argument(
+        "--ship",
+        metavar="LOGDIR",
+        default=None,
+        help="for maintainers: copy the best checkpoint of this run into the package (parameters only)",
+    )
+    p.add_argument("--name", default=None, help="with --ship: the name, e.g. cube4-k9")
+    p.set_defaults(func=cmd_pretrained)
