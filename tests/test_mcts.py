@@ -8,7 +8,14 @@ from helpers import untrained_episodes
 from rllock.core.env import final_labels, initial_state, make_task
 from rllock.core.verifier import verify_labels
 from rllock.search.base import derive_seed, group_sizes
-from rllock.search.mcts import ChunkStore, MCTSConfig, bounded_value, play_groups, searchers
+from rllock.search.mcts import (
+    ChunkStore,
+    MCTSConfig,
+    bounded_value,
+    expand_rows,
+    play_groups,
+    searchers,
+)
 from rllock.search.network import NetConfig, init_params
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -19,8 +26,8 @@ def test_expansion_rewards_terminals_and_memo():
     store = ChunkStore(task, SMALL, 4, seed=0)
     root = store.add(initial_state(task))
     assert 0 < len(store.cands[root]) <= SMALL.candidates
-    kids, reward, discount, floor, cap, planes, chunks, valid = store.expand(
-        np.array([root, root]), np.array([0, 0])
+    kids, reward, discount, floor, cap, planes, chunks, valid = expand_rows(
+        store, np.array([root, root]), np.array([0, 0])
     )
     assert kids[0] == kids[1] and store.child(root, 0) == kids[0]  # the same (node, action) -> one node
     np.testing.assert_allclose(reward, 1 / 4)
@@ -30,11 +37,11 @@ def test_expansion_rewards_terminals_and_memo():
     # An action past the candidates, or any action below a terminal node, earns nothing and stays put.
     short = store.add(initial_state(task))
     store.cands[short] = store.cands[short][:3]  # a node with fewer candidates than M_c
-    k, r, d, *_ = store.expand(np.array([short]), np.array([5]))
+    k, r, d, *_ = expand_rows(store, np.array([short]), np.array([5]))
     assert (k[0], r[0], d[0]) == (short, 0.0, 0.0)
     dead = store.add(initial_state(task))
     store.cands[dead] = store.cands[dead][:0]
-    k, r, d, *_ = store.expand(np.array([dead]), np.array([0]))
+    k, r, d, *_ = expand_rows(store, np.array([dead]), np.array([0]))
     assert (k[0], r[0], d[0]) == (dead, 0.0, 0.0)
 
 

@@ -8,8 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from orchestration.cli.flags import add_flags, field_docs, from_flags
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig, from_flat, from_json, to_json
 

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 from helpers import untrained_episodes
 
-from rllock.config import TrainConfig
+from rllock.config import TrainConfig, with_method_defaults
 from rllock.core.env import final_labels
 from rllock.core.verifier import verify_labels
 from rllock.core.voxel_env import initial_voxel_state, legal_mask, step
 from rllock.search.mcts import MCTSConfig
-from rllock.search.methods import with_method_defaults
 from rllock.search.voxel_search import VoxelStore
 
 SMALL = MCTSConfig(simulations=8, max_considered=4, max_depth=6)
@@ -51,12 +50,55 @@ def test_voxel_episodes_take_legal_voxels_and_score_only_accepted_pieces(episode
 
 def test_each_method_takes_its_own_settings_unless_others_are_given():
     base = TrainConfig(shape="cube4", pieces=7)
-    action = with_method_defaults(dataclasses.replace(base, method="rl-lock-action"))
+    action = with_method_defaults(dataclasses.replace(base, method="rl-lock-action"), given=())
     assert (action.mcts.simulations, action.mcts.max_depth, action.mcts.max_considered) == (128, 32, 16)
     given = with_method_defaults(
-        dataclasses.replace(base, method="rl-lock-action", mcts=MCTSConfig(simulations=64, max_depth=8))
+        dataclasses.replace(base, method="rl-lock-action", mcts=MCTSConfig(simulations=64, max_depth=8)),
+        given={"simulations", "max_depth"},
     )
     assert (given.mcts.simulations, given.mcts.max_depth) == (64, 8)
-    ppo = with_method_defaults(dataclasses.replace(base, method="ppo", replay_ratio=2.0))
+    ppo = with_method_defaults(
+        dataclasses.replace(base, method="ppo", replay_ratio=2.0), given={"replay_ratio"}
+    )
     assert (ppo.buffer_capacity, ppo.replay_ratio, ppo.max_policy_lag) == (2048, 2.0, 1)
-    assert with_method_defaults(base) == base
+    assert with_method_defaults(base, given=()) == base
+
+
+@pytest.mark.parametrize(
+    "flags, want",
+    [
+        ([], (128, 32, 50_000, 4.0)),
+        # A flag the user gives wins even when it equals the general default (256 simulations, 4.0).
+        (["--simulations", "256"], (256, 32, 50_000, 4.0)),
+        (["--simulations=256", "--max-depth", "8"], (256, 8, 50_000, 4.0)),
+    ],
+)
+def test_a_flag_the_user_gives_always_wins_over_the_method_defaults(flags, want):
+    from orchestration.cli.main import build_parser
+    from orchestration.cli.training import train_config
+
+    args = build_parser().parse_args(
+        ["train", "--shape", "cube4", "--pieces", "7", "--method", "rl-lock-action", *flags]
+    )
+    config = train_config(args)
+    assert (
+        config.mcts.simulations,
+        config.mcts.max_depth,
+        config.buffer_capacity,
+        config.replay_ratio,
+    ) == want
+
+
+def test_ppo_keeps_a_replay_ratio_given_equal_to_the_general_default():
+    from orchestration.cli.main import build_parser
+    from orchestration.cli.training import train_config
+
+    def parse(*flags: str):
+        return train_config(build_parser().parse_args(["train", "--shape", "cube4", "--pieces", "7", *flags]))
+
+    given = parse("--method", "ppo", "--replay-ratio", "4")
+    default = parse("--method", "ppo", "--no-symmetries")
+    assert (given.replay_ratio, given.buffer_capacity, given.max_policy_lag) == (4.0, 2048, 1)
+    assert (default.replay_ratio, default.buffer_capacity, default.learner.symmetries) == (4.0, 2048, False)
+    plain = parse("--replay-ratio", "2")
+    assert (plain.replay_ratio, plain.buffer_capacity, plain.mcts.simulations) == (2.0, 50_000, 256)

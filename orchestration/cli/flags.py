@@ -2,7 +2,8 @@
 
 Each leaf field of a config, nested configs included, becomes one `--flag-name`; flag names are the
 field names, so they must be unique across the nesting (checked). The help text is the field's
-docstring, the string literal written under it in the class body.
+docstring, the string literal written under it in the class body. The flags record which of them were
+given (`given_flags`): a value the user typed is told apart from a default even when the two are equal.
 """
 
 from __future__ import annotations
@@ -59,6 +60,34 @@ def _leaf_type(owner: type, name: str) -> Any:
     return args[0] if typing.get_origin(hint) in (typing.Union, types.UnionType) else hint
 
 
+_GIVEN = "_flags_given"
+
+
+def _record(namespace: argparse.Namespace, dest: str) -> None:
+    setattr(namespace, _GIVEN, getattr(namespace, _GIVEN, frozenset()) | {dest})
+
+
+class _Given(argparse.Action):
+    """Stores the flag's value and records that it was given."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        _record(namespace, self.dest)
+
+
+class _GivenBool(argparse.BooleanOptionalAction):
+    """--flag / --no-flag, recording that one of them was given."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        super().__call__(parser, namespace, values, option_string)
+        _record(namespace, self.dest)
+
+
+def given_flags(args: argparse.Namespace) -> frozenset[str]:
+    """The leaf field names whose flags were given on the command line (flags made by `add_flags`)."""
+    return getattr(args, _GIVEN, frozenset())
+
+
 def _int_tuple(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(v) for v in text.split(","))
@@ -91,21 +120,27 @@ def add_flags(
         )
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             note = f" (required unless {required_unless})" if required_unless else " (required)"
-            parser.add_argument(flag, type=kind, default=None, help=doc + note)
+            parser.add_argument(flag, type=kind, default=None, action=_Given, help=doc + note)
         elif kind is bool:
-            parser.add_argument(flag, default=default, action=argparse.BooleanOptionalAction, help=doc)
+            parser.add_argument(flag, default=default, action=_GivenBool, help=doc)
         elif typing.get_origin(kind) is tuple:
             assert isinstance(default, tuple)
             parser.add_argument(
                 flag,
                 type=_int_tuple,
                 default=default,
+                action=_Given,
                 help=f"{doc} Comma-separated (default {','.join(map(str, default))}).",
             )
         else:
             shown = "" if default is None else f" (default {default})"
             parser.add_argument(
-                flag, type=kind, default=default, choices=(choices or {}).get(name), help=doc + shown
+                flag,
+                type=kind,
+                default=default,
+                choices=(choices or {}).get(name),
+                action=_Given,
+                help=doc + shown,
             )
 
 

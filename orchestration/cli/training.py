@@ -20,10 +20,18 @@ from orchestration.cli.common import (
     picture_writer,
     ray_on_loopback_unless,
 )
-from orchestration.cli.flags import add_flags, from_flags
-from rllock.config import EVALUATION_MODES, METHODS, TrainConfig
+from orchestration.cli.flags import add_flags, from_flags, given_flags
+from rllock.config import EVALUATION_MODES, METHODS, TrainConfig, with_method_defaults
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
+
+
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The run's config from `rllock train`'s flags, with the method's own settings for the flags not
+    given (METHOD_DEFAULTS), checked."""
+    config = with_method_defaults(from_flags(TrainConfig, args), given_flags(args))
+    config.validate()
+    return config
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -32,8 +40,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         config = run_config(Path(args.resume), minutes=args.minutes, max_learner_steps=args.max_learner_steps)
     else:
-        config = from_flags(TrainConfig, args)
-        config.validate()
+        config = train_config(args)
     ray_on_loopback_unless(config.address)
     from orchestration.train import train
 

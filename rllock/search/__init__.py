@@ -3,7 +3,7 @@
   base.py           the contract types the searches, actors and learner share (Episode, Player, TimeSplit)
   network.py        the policy-value 3D U-Net and the state encoding
   canvas.py         states on the canvas, and the symmetries of mini-batches of many shapes
-  nodes.py          the search tree's node store: candidates, per-node arrays, children
+  nodes.py          the search tree's node store (states, candidates, children), its features and episodes
   mcts.py           MCTS over whole pieces (mctx's Gumbel MuZero, expanded by the compiled sampler)
   voxel_search.py   MCTS over single voxels (RL-Lock_Action)
   ppo.py            the PPO baseline's policy player and loss

@@ -1,10 +1,10 @@
 """MCTS over action chunks: mctx's Gumbel MuZero, with nodes expanded on the host by the compiled sampler.
 
-The search tree (inside jit) holds only integer handles into a host-side `NodeStore`. Expanding a leaf
-calls back to the host (`jax.experimental.io_callback`): the store applies the chunk, samples M_s raw
-chunks for the child, keeps M_c accepted ones as its candidate actions, and returns the child's
-planes and candidates; the network then scores all leaves of the batch in one call. Several episodes
-run in lockstep, one batch row each, so every simulation is one network call for all of them.
+The search tree (inside jit) holds only integer handles into a host-side `rllock.search.nodes.NodeStore`.
+Expanding a leaf calls back to the host (`jax.experimental.io_callback`, `expand_rows`): the store applies
+the chunk, samples M_s raw chunks for the child, keeps M_c accepted ones as its candidate actions, and
+returns the child's planes and candidates; the network then scores all leaves of the batch in one call.
+Several episodes run in lockstep, one batch row each, so every simulation is one network call for them all.
 
 Rewards: 1/K per accepted chunk. A child with no candidates (a dead end) or with K-1 pieces placed
 (success) is terminal: discount 0 and value 0. Expanding below a terminal node gives reward 0.
@@ -31,164 +31,12 @@ from rllock.core.env import (
     Task,
     apply_chunk,
     candidates_many,
-    compact_dtypes,
     initial_state,
     is_solved,
 )
 from rllock.search.base import Episode, Player, TimeSplit, derive_seed, group_sizes
-from rllock.search.network import PolicyValueNet, canvas_index, chunk_logits, encode_batch, planes_of
-
-
-class NodeStore:
-    """Search nodes on the host: states, candidate actions (as chunks of voxel numbers, [L, n]),
-    children. Subclasses say what an action is: `ChunkStore` (one whole piece, RL-Lock) and
-    `rllock.search.voxel_search.VoxelStore` (one voxel, RL-Lock_Action). With `parallel`, a simulation's
-    expansions are spread over numba's threads; without, they run on the calling thread (for several
-    stores searched in threads of their own)."""
-
-    def __init__(
-        self,
-        task: Task,
-        config: MCTSConfig,
-        canvas: int,
-        seed: int,
-        parallel: bool = True,
-        *,
-        task_planes: bool = False,
-    ):
-        self.parallel = parallel
-        self.task_planes = task_planes
-        self.task = task
-        self.config = config
-        self.canvas_idx = canvas_index(task, canvas)
-        self.canvas = canvas
-        self.rng = np.random.default_rng(seed)
-        self.states: list = []
-        self.cands: list[np.ndarray] = []
-        self.children: dict[tuple[int, int], int] = {}
-        self.times = TimeSplit()
-        self.m, self.n = self.action_shape(task, config)
-
-    @staticmethod
-    def action_shape(task: Task, config: MCTSConfig) -> tuple[int, int]:
-        """(M, n): candidate actions per node at most, voxels per action."""
-        raise NotImplementedError
-
-    def initial(self):
-        """The state an episode starts from."""
-        raise NotImplementedError
-
-    def candidates(self, states: list) -> list[np.ndarray]:
-        """Each state's candidate actions, int32[L, n] (L = 0: terminal)."""
-        raise NotImplementedError
-
-    def apply(self, state, action: np.ndarray):
-        raise NotImplementedError
-
-    def encoded_placed(self, state) -> int:
-        """The `placed` the network's encoding is given for `state` (`rllock.search.network.encode_batch`)."""
-        return state.placed
-
-    def floor(self, reward: float) -> float:
-        """What a live child reached with `reward` is known to be worth at least (`bounded_value`)."""
-        return 0.0
-
-    def add_many(self, states: list) -> list[int]:
-        """Store `states` as nodes, with their candidates; their numbers."""
-        cands = self.candidates(states)
-        first = len(self.states)
-        self.states.extend(states)
-        self.cands.extend(cands)
-        return list(range(first, len(self.states)))
-
-    def add(self, state) -> int:
-        return self.add_many([state])[0]
-
-    def terminal(self, node: int) -> bool:
-        return len(self.cands[node]) == 0
-
-    def child(self, node: int, action: int) -> int:
-        """The node reached by taking candidate `action` (memoised, so a node is expanded once)."""
-        return self.children_of([(node, action)])[0]
-
-    def children_of(self, pairs: list[tuple[int, int]]) -> list[int]:
-        """The nodes reached by (node, candidate action) pairs, expanding the new ones together."""
-        new = list(dict.fromkeys(p for p in pairs if p not in self.children))
-        if new:
-            kids = self.add_many([self.apply(self.states[n], self.cands[n][a]) for n, a in new])
-            self.children.update(zip(new, kids))
-        return [self.children[p] for p in pairs]
-
-    def features(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(planes [B, C, C, C, P], candidate actions as canvas indices [B, M, n], valid [B, M])."""
-        labels = np.stack([self.states[i].labels for i in nodes])
-        placed = np.array([self.encoded_placed(self.states[i]) for i in nodes])
-        chunks = np.zeros((len(nodes), self.m, self.n), np.int32)
-        valid = np.zeros((len(nodes), self.m), bool)
-        for row, i in enumerate(nodes):
-            c = self.cands[i]
-            chunks[row, : len(c)] = self.canvas_idx[c]
-            valid[row, : len(c)] = True
-        return encode_batch(self.task, labels, placed, self.canvas, self.task_planes), chunks, valid
-
-    def expand(self, nodes: np.ndarray, actions: np.ndarray):
-        """One simulation's expansion for every row: (child nodes, reward, discount, value floor and cap,
-        and the children's features). A row below a terminal node stays where it is, with reward 0."""
-        start, sampled = time.perf_counter(), self.times.sampling
-        out = self._expand(nodes.tolist(), actions.tolist())
-        self.times.host += time.perf_counter() - start - (self.times.sampling - sampled)
-        return out
-
-    def _expand(self, nodes: list[int], actions: list[int]):
-        moves = [
-            r
-            for r, (n, a) in enumerate(zip(nodes, actions))
-            if not self.terminal(n) and a < len(self.cands[n])
-        ]
-        kids = np.array(nodes, np.int32)
-        kids[moves] = self.children_of([(nodes[r], actions[r]) for r in moves])
-        reward = np.zeros(len(nodes), np.float32)
-        discount = np.zeros(len(nodes), np.float32)
-        floor = np.zeros(len(nodes), np.float32)
-        cap = np.zeros(len(nodes), np.float32)
-        k = self.task.pieces
-        for r in moves:
-            kid, parent = self.states[int(kids[r])], self.states[nodes[r]]
-            reward[r] = (kid.placed - parent.placed) / k
-            discount[r] = 0.0 if self.terminal(int(kids[r])) else 1.0
-            floor[r] = self.floor(float(reward[r]))
-            cap[r] = (k - 1 - kid.placed) / k
-        planes, chunks, valid = self.features(kids)
-        return kids, reward, discount, floor, cap, planes, chunks, valid
-
-    def episode(self, steps: list[tuple[int, np.ndarray, int]], last: int) -> Episode:
-        """The episode that took the decisions `steps` ((node, policy over its candidates, candidate
-        taken) each) and ended at `last`."""
-        task = self.task
-        t = len(steps)
-        label_dtype, voxel_dtype = compact_dtypes(task)
-        labels = np.zeros((t, task.size), label_dtype)
-        placed = np.zeros(t, np.int16)
-        encoded = np.zeros(t, np.int16)
-        chunks = np.zeros((t, self.m, self.n), voxel_dtype)
-        num_valid = np.zeros(t, np.int16)
-        pi = np.zeros((t, self.m), np.float32)
-        actions = np.zeros(t, np.int16)
-        for s, (node, weights, action) in enumerate(steps):
-            state, cands = self.states[node], self.cands[node]
-            labels[s] = state.labels
-            placed[s] = state.placed
-            encoded[s] = self.encoded_placed(state)
-            chunks[s, : len(cands)] = cands
-            num_valid[s] = len(cands)
-            pi[s] = weights
-            actions[s] = action
-        final = self.states[last]
-        # Only accepted pieces are rewarded (1/K each), so z_s = (placed at the end - placed at s) / K.
-        z = ((final.placed - placed) / task.pieces).astype(np.float32)
-        return Episode(
-            labels, encoded, chunks, num_valid, pi, z, final.placed == task.pieces - 1, final, actions
-        )
+from rllock.search.network import PolicyValueNet, chunk_logits, planes_of
+from rllock.search.nodes import NodeStore, node_features, record_episode
 
 
 class ChunkStore(NodeStore):
@@ -228,11 +76,59 @@ class ChunkStore(NodeStore):
         return 1.0 / self.task.pieces
 
 
+def expand_rows(store: NodeStore, nodes: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, ...]:
+    """One simulation's expansion for every row: (child nodes, reward, discount, value floor and cap,
+    and the children's features). A row below a terminal node stays where it is, with reward 0. Its
+    time counts as the store's host time, less what the sampler took of it."""
+    start, sampled = time.perf_counter(), store.times.sampling
+    out = _expand(store, nodes.tolist(), actions.tolist())
+    store.times.host += time.perf_counter() - start - (store.times.sampling - sampled)
+    return out
+
+
+def _expand(store: NodeStore, nodes: list[int], actions: list[int]) -> tuple[np.ndarray, ...]:
+    moves = [
+        r for r, (n, a) in enumerate(zip(nodes, actions)) if not store.terminal(n) and a < len(store.cands[n])
+    ]
+    kids = np.array(nodes, np.int32)
+    kids[moves] = store.children_of([(nodes[r], actions[r]) for r in moves])
+    reward = np.zeros(len(nodes), np.float32)
+    discount = np.zeros(len(nodes), np.float32)
+    floor = np.zeros(len(nodes), np.float32)
+    cap = np.zeros(len(nodes), np.float32)
+    k = store.task.pieces
+    for r in moves:
+        kid, parent = store.states[int(kids[r])], store.states[nodes[r]]
+        reward[r] = (kid.placed - parent.placed) / k
+        discount[r] = 0.0 if store.terminal(int(kids[r])) else 1.0
+        floor[r] = store.floor(float(reward[r]))
+        cap[r] = (k - 1 - kid.placed) / k
+    planes, chunks, valid = node_features(store, kids)
+    return kids, reward, discount, floor, cap, planes, chunks, valid
+
+
 def bounded_value(value: jax.Array, discount: jax.Array, floor: jax.Array, cap: jax.Array) -> jax.Array:
     """The network's value clipped to what is known of a child: 0 when terminal; otherwise at least
     `floor` (`NodeStore.floor`: 1/K for a chunk node, which has an accepted candidate) and at most
     `cap` ((K-1-i)/K, the pieces still to place)."""
     return jnp.where(discount > 0, jnp.clip(value, floor, cap), 0.0)
+
+
+def _expansion_shapes(
+    batch: int, action_shape: tuple[int, int], canvas: int, planes: int
+) -> tuple[jax.ShapeDtypeStruct, ...]:
+    """What `expand_rows` returns for `batch` rows, as the host callback must declare it."""
+    (m, n), c = action_shape, canvas
+    return (
+        jax.ShapeDtypeStruct((batch,), jnp.int32),
+        jax.ShapeDtypeStruct((batch,), jnp.float32),
+        jax.ShapeDtypeStruct((batch,), jnp.float32),
+        jax.ShapeDtypeStruct((batch,), jnp.float32),
+        jax.ShapeDtypeStruct((batch,), jnp.float32),
+        jax.ShapeDtypeStruct((batch, c, c, c, planes), jnp.float32),
+        jax.ShapeDtypeStruct((batch, m, n), jnp.int32),
+        jax.ShapeDtypeStruct((batch, m), jnp.bool_),
+    )
 
 
 class Searcher:
@@ -250,57 +146,49 @@ class Searcher:
         self.canvas = net.config.canvas
         self.batch = batch
         self.store: NodeStore | None = None
-        (m, n), c = space.action_shape(task, config), self.canvas
-        shapes = (
-            jax.ShapeDtypeStruct((batch,), jnp.int32),
-            jax.ShapeDtypeStruct((batch,), jnp.float32),
-            jax.ShapeDtypeStruct((batch,), jnp.float32),
-            jax.ShapeDtypeStruct((batch,), jnp.float32),
-            jax.ShapeDtypeStruct((batch,), jnp.float32),
-            jax.ShapeDtypeStruct((batch, c, c, c, planes_of(net.config)), jnp.float32),
-            jax.ShapeDtypeStruct((batch, m, n), jnp.int32),
-            jax.ShapeDtypeStruct((batch, m), jnp.bool_),
+        self._shapes = _expansion_shapes(
+            batch, space.action_shape(task, config), self.canvas, planes_of(net.config)
         )
+        self._search = jax.jit(self._tree_search)
 
-        def host_expand(nodes, actions):
-            assert self.store is not None
-            return self.store.expand(np.asarray(nodes), np.asarray(actions))
+    def _evaluate(self, params, planes, chunks, valid):
+        voxel_logits, value = self.net.apply({"params": params}, planes)
+        return chunk_logits(voxel_logits, chunks, valid), value
 
-        def evaluate(params, planes, chunks, valid):
-            voxel_logits, value = net.apply({"params": params}, planes)
-            return chunk_logits(voxel_logits, chunks, valid), value
+    def _host_expand(self, nodes, actions):
+        assert self.store is not None
+        return expand_rows(self.store, np.asarray(nodes), np.asarray(actions))
 
-        def recurrent_fn(params, rng_key, action, embedding):
-            del rng_key
-            kids, reward, discount, floor, cap, planes, chunks, valid = io_callback(
-                host_expand, shapes, embedding, action
-            )
-            logits, value = evaluate(params, planes, chunks, valid)
-            out = mctx.RecurrentFnOutput(
-                reward=reward,
-                discount=discount,
-                prior_logits=logits,
-                value=bounded_value(value, discount, floor, cap),
-            )
-            return out, kids
+    def _recurrent(self, params, rng_key, action, embedding):
+        """mctx's recurrent function: the leaves are expanded on the host, then scored in one call."""
+        del rng_key
+        kids, reward, discount, floor, cap, planes, chunks, valid = io_callback(
+            self._host_expand, self._shapes, embedding, action
+        )
+        logits, value = self._evaluate(params, planes, chunks, valid)
+        out = mctx.RecurrentFnOutput(
+            reward=reward,
+            discount=discount,
+            prior_logits=logits,
+            value=bounded_value(value, discount, floor, cap),
+        )
+        return out, kids
 
-        def search(params, key, roots, planes, chunks, valid):
-            logits, value = evaluate(params, planes, chunks, valid)
-            root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
-            out = mctx.gumbel_muzero_policy(
-                params,
-                key,
-                root,
-                recurrent_fn,
-                num_simulations=config.simulations,
-                invalid_actions=~valid,
-                max_depth=config.max_depth,
-                max_num_considered_actions=config.max_considered,
-                gumbel_scale=config.gumbel_scale,
-            )
-            return out.action, out.action_weights, value
-
-        self._search = jax.jit(search)
+    def _tree_search(self, params, key, roots, planes, chunks, valid):
+        logits, value = self._evaluate(params, planes, chunks, valid)
+        root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
+        out = mctx.gumbel_muzero_policy(
+            params,
+            key,
+            root,
+            self._recurrent,
+            num_simulations=self.config.simulations,
+            invalid_actions=~valid,
+            max_depth=self.config.max_depth,
+            max_num_considered_actions=self.config.max_considered,
+            gumbel_scale=self.config.gumbel_scale,
+        )
+        return out.action, out.action_weights, value
 
     def play(
         self,
@@ -328,7 +216,7 @@ class Searcher:
         """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
         self.store = store
         start, before = time.perf_counter(), store.times.sampling + store.times.host
-        planes, chunks, valid = store.features(roots)
+        planes, chunks, valid = node_features(store, roots)
         # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
         valid[~valid.any(axis=1), 0] = True
         action, weights, value = self._search(
@@ -363,7 +251,7 @@ def play_lockstep(
         active[rows] = [not store.terminal(int(nodes[b])) for b in rows]
     if times is not None:
         times.add(store.times)
-    return [store.episode(trace[b], int(nodes[b])) for b in range(batch)]
+    return [record_episode(store, trace[b], int(nodes[b])) for b in range(batch)]
 
 
 def play_groups(

@@ -26,6 +26,7 @@ from rllock.core.env import Task
 from rllock.search.base import Episode, TimeSplit
 from rllock.search.mcts import play_lockstep
 from rllock.search.network import PolicyValueNet, chunk_logits
+from rllock.search.nodes import node_features
 from rllock.search.voxel_search import VoxelStore
 
 
@@ -92,7 +93,7 @@ class PolicyPlayer:
         store = VoxelStore(task, self.config, self.canvas, seed, task_planes=self.task_planes)
 
         def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            planes, chunks, valid = store.features(nodes)
+            planes, chunks, valid = node_features(store, nodes)
             valid[~valid.any(axis=1), 0] = True  # finished rows still run: keep them finite
             start = time.perf_counter()
             actions, probs = (np.asarray(a) for a in self._policy(params, sub, planes, chunks, valid))

@@ -5,7 +5,7 @@ A shipped checkpoint is a step directory like a training run's, under `rllock/ch
 the run's metadata (task, config, validation, counters, and the command, commit, machine and date of
 each training session) plus a `shipped` record. Wherever a checkpoint path is taken (`generate`,
 `bench learning`, `rllock.load_policy`), a name resolves to its shipped directory when no such path
-exists.
+exists. Shipped files name no absolute path of the machine that made them (`portable`).
 """
 
 from __future__ import annotations
@@ -57,19 +57,85 @@ def machine_summary(machine: str | None) -> str:
     return f"{cores} cores" if platform == "cpu" else f"{cores} cores, {kind}"
 
 
+# An absolute path inside a command line: at its start, after a space or after `--flag=`.
+_ABSOLUTE_IN_COMMAND = re.compile(r"(?<![^\s=])/[^\s]*")
+# The folder that holds the `rllock` package: the repository, or site-packages.
+_PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+# orbax's marker of a finished save in `state/`: it checks that the file exists, not what it says.
+COMMIT_SUCCESS = "commit_success.txt"
+
+
+def commit_line(state: str) -> str:
+    """orbax's words in `commit_success.txt`, for the `state/` folder at the portable path `state`."""
+    return f"Checkpoint commit was successful to {state}"
+
+
+def portable(path: str | Path, tail: int | None = None) -> str:
+    """`path` as a shipped file records it, naming nothing of the machine that wrote it. A relative
+    path stays as it is. An absolute one becomes relative to the current directory when it lies
+    under it (`runs/cube4-k9/best/5703` from the directory that holds `runs/`); else relative to the
+    folder that holds the `rllock` package when under that (`rllock/checkpoints/cube4-k9`); else its
+    last `tail` parts, by default the run's folder and the rest below it: from the folder above
+    `best/` or `checkpoints/` (`/data/runs/cube4-k9/best/5703` gives `cube4-k9/best/5703`), or the
+    last part alone where there is no such folder (a run's log directory, `/tmp/cube6-k22` gives
+    `cube6-k22`)."""
+    path = Path(path)
+    if not path.is_absolute():
+        return str(path)
+    for candidate in (path, path.resolve()):
+        for base in (Path.cwd(), Path.cwd().resolve(), _PACKAGE_ROOT):
+            if candidate.is_relative_to(base) and base != Path(base.anchor):
+                return str(candidate.relative_to(base))
+    parts = path.parts[1:]
+    if tail is None:
+        tail = 1
+        for i in range(len(parts) - 1, 0, -1):
+            if parts[i] in ("best", "checkpoints"):
+                tail = len(parts) - i + 1
+                break
+    return str(Path(*parts[-tail:])) if parts else "."
+
+
+def portable_meta(meta: dict) -> dict:
+    """`meta` with the absolute paths that training writes into it made `portable`: the config's
+    `logdir` and `init` and those in each session's command line. Nothing else changes."""
+    meta = {**meta}
+    config = meta.get("config")
+    if isinstance(config, dict):
+        meta["config"] = {
+            key: portable(value) if key in ("logdir", "init") and isinstance(value, str) else value
+            for key, value in config.items()
+        }
+    if isinstance(meta.get("sessions"), list):
+        meta["sessions"] = [
+            {**s, "command": _ABSOLUTE_IN_COMMAND.sub(lambda m: portable(m.group()), s["command"])}
+            if isinstance(s, dict) and isinstance(s.get("command"), str)
+            else s
+            for s in meta["sessions"]
+        ]
+    return meta
+
+
 def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
     """Copy the best checkpoint of the run in `source` (or the step directory `source`) into `into`
-    as `name`: parameters and metadata only. Replaces an earlier checkpoint of that name."""
+    as `name`: parameters and metadata only. Replaces an earlier checkpoint of that name.
+
+    The copy names no absolute path (`portable`): `shipped.from` is the step directory relative to
+    the current directory when under it, else from the run's folder down (`cube4-k9/best/5703`); so
+    are the config's `logdir` and `init` and the paths in the sessions' command lines; and orbax's
+    `state/commit_success.txt` (only its existence matters to orbax) names `state/` the same way:
+    `rllock/checkpoints/<name>/state` for the package's own checkpoints, `<name>/state` where
+    neither the current directory nor the package's folder holds it."""
     if not ckpt.SHIPPED_NAME.match(name):
         raise RLLockError(f"bad checkpoint name {name!r}: use lower-case words like cube4-k9 or sofa-k19")
     step_dir = ckpt.find_step_dir(source)
-    meta = ckpt.read_meta(step_dir)
+    meta = portable_meta(ckpt.read_meta(step_dir))
     net = from_json(NetConfig, meta["config"]["net"])
     template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
     params = ckpt.restore_like(step_dir, template, partial=True)
     meta["shipped"] = {
         "name": name,
-        "from": str(step_dir),
+        "from": portable(step_dir),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
     into = ckpt.SHIPPED if into is None else into
@@ -82,6 +148,8 @@ def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
     saver.wait_until_finished()
     (staging / "meta" / "metadata").write_text(json.dumps(meta))
     target = into / name
+    # orbax wrote the absolute staging path in it; the file must stay, its words are for people.
+    (staging / "state" / COMMIT_SUCCESS).write_text(commit_line(portable((target / "state").absolute(), 2)))
     shutil.rmtree(target, ignore_errors=True)
     staging.rename(target)
     return target

@@ -17,7 +17,7 @@ import numpy as np
 from rllock.config import MCTSConfig
 from rllock.core.env import Task
 from rllock.core.voxel_env import VoxelState, initial_voxel_state, legal_mask, step
-from rllock.search.mcts import NodeStore
+from rllock.search.nodes import NodeStore
 
 
 class VoxelStore(NodeStore):
