@@ -3,6 +3,7 @@ best validation assembly with its picture."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import asdict, dataclass
@@ -53,7 +54,7 @@ def best_rank(logdir: Path) -> tuple[float, float]:
     steps = ckpt.saved_steps(logdir / "best")
     if not steps:
         return -1.0, -1.0
-    return validation_rank(ckpt.read_meta(logdir / "best" / str(steps[-1])).get("validation"))
+    return validation_rank(ckpt.read_metadata(logdir / "best" / str(steps[-1])).validation)
 
 
 class Recorder:
@@ -66,9 +67,11 @@ class Recorder:
         resume: bool,
         sessions: list[dict],
     ):
-        """`task`: the run's task, or a multi-task run's identity (`checkpoint.meta`); `sessions`:
-        the provenance of the processes that trained this run before (when resumed)."""
-        self.logdir, self.config, self.task = logdir, config, task
+        """`task`: the run's task, or a multi-task run's identity (`checkpoint.Metadata.of`); `sessions`:
+        the provenance of the processes that trained this run before (when resumed). The metadata names
+        the log directory as `checkpoint.portable` does: a checkpoint carries no machine's paths."""
+        self.logdir, self.task = logdir, task
+        self.config = dataclasses.replace(config, logdir=ckpt.portable(config.logdir))
         self.sessions = [*sessions, ckpt.provenance()]
         logdir.mkdir(parents=True, exist_ok=True)
         # purge_step drops events logged after the checkpoint we resume from, so the curves do not fork.
@@ -86,7 +89,7 @@ class Recorder:
             self.latest,
             step,
             state,
-            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters), self.sessions),
+            ckpt.Metadata.of(self.config, self.task, step, validation, asdict(counters), self.sessions),
         )
 
     def best_checkpoint(
@@ -102,7 +105,7 @@ class Recorder:
             self.best,
             step,
             state,
-            ckpt.meta(to_json(self.config), self.task, step, validation, asdict(counters), self.sessions),
+            ckpt.Metadata.of(self.config, self.task, step, validation, asdict(counters), self.sessions),
         )
         if assembly is not None:
             self._best_assembly(*assembly, step)

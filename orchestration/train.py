@@ -5,8 +5,8 @@ the episodes into the replay buffer actor and returns its statistics; this proce
 newest weights (one `ray.put` per version, fetched by an actor only when the version changed). Exactly
 one batch is in flight per actor, and the learner stops publishing while the oldest batch in flight is
 `max_policy_lag` versions behind (`pacing.Pacing`). The learner starts once the buffer holds a batch,
-takes at most `replay_ratio` sampled transitions per transition produced, validates on fixed seeds every
-`validate_minutes` when the budget has room for it, and keeps:
+takes at most `replay_ratio` sampled transitions per transition produced, validates on fixed seeds
+(`validation`) every `validate_minutes` when the budget has room for it, and keeps:
   LOGDIR/checkpoints/<step>/  the latest checkpoints (orbax: learner state + metadata with the config,
                               the task and the counters); the first right after the first learner step
   LOGDIR/best/<step>/         the checkpoint with the best validation
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import signal
 import time
 from pathlib import Path
@@ -31,33 +30,35 @@ from pathlib import Path
 import jax
 import numpy as np
 import ray
+from ray.actor import ActorHandle
 from ray.exceptions import RayTaskError
 
-from actors.selfplay import TaskSpec, evaluate
+from actors.selfplay import TaskSpec
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
+from orchestration import validation
 from orchestration.pacing import Pacing, Schedule, final_reserve, validation_estimate
 from orchestration.pool import ActorPool, largest_node_cpus, plan_layout, start_ray
-from orchestration.recorder import Counters, Recorder, best_rank, validation_rank
+from orchestration.recorder import Counters, Recorder, best_rank
 from rllock.config import TrainConfig
-from rllock.core.env import Task, compact_dtypes, final_labels, make_task
+from rllock.core.env import Task, compact_dtypes, make_task
 from rllock.core.tasks import TaskSet, parse_tasks
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.process import peak_rss_mb
 from rllock.search.inference import load_network
-from rllock.search.methods import players, space, with_method_defaults
+from rllock.search.methods import space
 from rllock.search.network import fit_canvas
 
 log = logging.getLogger(__name__)
 
 
-def _restore_latest(logdir: Path, learner: Learner) -> dict:
+def _restore_latest(logdir: Path, learner: Learner) -> ckpt.Metadata:
     """Load the newest readable checkpoint into `learner`; returns its metadata."""
     for step in ckpt.saved_steps(logdir / "checkpoints")[::-1]:
         step_dir = logdir / "checkpoints" / str(step)
         try:
-            meta = ckpt.read_meta(step_dir)
+            meta = ckpt.read_metadata(step_dir)
             learner.load_state(ckpt.restore_like(step_dir, learner.state()))
         except RLLockError as exc:
             log.warning("%s; falling back to the checkpoint before it", exc)
@@ -75,7 +76,7 @@ def _setup(
     init = None
     net = config.net
     if config.init is not None and not resume:
-        _, _, net, _, init = load_network(config.init)
+        _, net, init = load_network(config.init)
         if config.net.canvas is not None:
             # The U-Net's weights do not depend on the canvas side, so a generalist trained on a large
             # canvas can be fine-tuned on the smallest one that fits the task, where search is cheaper.
@@ -93,26 +94,29 @@ def _setup(
     return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas), init
 
 
+def _resume(logdir: Path, learner: Learner, identity: dict) -> tuple[Counters, dict | None, list[dict]]:
+    """Restore the newest readable checkpoint of `logdir` into `learner`; (its counters, its last
+    validation, the sessions that trained the run)."""
+    meta = _restore_latest(logdir, learner)
+    ckpt.check_same_task(meta.task, identity, logdir)
+    counters = Counters(**meta.counters)
+    # The best checkpoint may be newer than the latest readable one: its own score is the bar.
+    counters.best_rate, counters.best_return = max(
+        (counters.best_rate, counters.best_return), best_rank(logdir)
+    )
+    log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
+    return counters, meta.validation, list(meta.sessions)
+
+
 def train(config: TrainConfig, *, resume: bool = False) -> dict:
     began = time.monotonic()
     config.validate()
-    config, task, tasks, identity, init = _setup(with_method_defaults(config), resume=resume)
+    config, task, tasks, identity, init = _setup(config, resume=resume)
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
     counters, last_score, sessions = Counters(), None, []
     if resume:
-        meta = _restore_latest(logdir, learner)
-        ckpt.check_same_task(meta["task"], identity, logdir)
-        counters = Counters(**meta.get("counters", {}))
-        # The best checkpoint may be newer than the latest readable one: its own score is the bar.
-        counters.best_rate, counters.best_return = max(
-            (counters.best_rate, counters.best_return), best_rank(logdir)
-        )
-        last_score = meta.get("validation")
-        sessions = meta.get("sessions", [])
-        log.info(
-            "resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes
-        )
+        counters, last_score, sessions = _resume(logdir, learner, identity)
     elif ckpt.saved_steps(logdir / "checkpoints"):
         raise RLLockError(
             f"{logdir} already holds a training run; resume it with --resume {logdir} "
@@ -141,6 +145,17 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
             )
 
 
+def _buffer_shape(
+    config: TrainConfig, task: Task | None, tasks: TaskSet | None
+) -> tuple[tuple[int, ...], tuple[type, type]]:
+    """The replay buffer's transition shape (states, candidates, piece size) and its two dtypes."""
+    if tasks is None:
+        assert task is not None
+        return (task.size, *space(config.method).action_shape(task, config.mcts)), compact_dtypes(task)
+    # canvas states (rllock.search.canvas)
+    return (tasks.canvas**3, config.mcts.candidates, tasks.max_piece_size()), (np.int8, np.int16)
+
+
 class _Run:
     """The actor-learner loop's state: what a checkpoint must capture, in one place."""
 
@@ -161,14 +176,7 @@ class _Run:
         self.pacing = Pacing.of(config)
         self.began = began
         self.schedule = Schedule.start(began, config)
-        # Validation runs in this process beside the learner, one lockstep group per task: the run's
-        # task, or one fixed task per group of a multi-task run.
-        self.space = space(config.method)
-        self.validation_tasks = [task] if tasks is None else tasks.validation_tasks(config.seed + 7)
-        self.searchers = [
-            players(config.method, config.net, config.mcts, t, config.validation_episodes, 1)
-            for t in self.validation_tasks
-        ]
+        self.validation_plan = validation.Plan.of(config, task, tasks)
         self.interrupted = False
         self.lag = 0
         # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
@@ -185,25 +193,34 @@ class _Run:
         log.warning("Ctrl-C: saving a checkpoint and stopping (press again to abort)")
 
     def loop(self, resume: bool) -> dict:
-        config, c, learner = self.config, self.counters, self.learner
-        if self.tasks is None:
-            assert self.task is not None
-            shape = (self.task.size, *self.space.action_shape(self.task, config.mcts))
-            dtypes = compact_dtypes(self.task)
-        else:  # canvas states (rllock.search.canvas)
-            shape = (self.tasks.canvas**3, config.mcts.candidates, self.tasks.max_piece_size())
-            dtypes = (np.int8, np.int16)
-        self.buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(config.buffer_capacity, *shape, *dtypes)
+        self.buffer = self._start_buffer(resume)
+        pool = self._start_pool()
+        self._selfplay(pool)
+        self._charts()  # the curves end at the final step
+        if not self.interrupted:
+            self._validate_if_it_fits(time.monotonic(), final=True)
+        self._checkpoint()
+        return self._result()
+
+    def _start_buffer(self, resume: bool) -> ActorHandle:
+        """The replay buffer actor, holding the run's snapshot when resumed."""
+        shape, dtypes = _buffer_shape(self.config, self.task, self.tasks)
+        buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(self.config.buffer_capacity, *shape, *dtypes)
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
             try:
-                restored = ray.get(self.buffer.restore.remote(str(snapshot)))
+                restored = ray.get(buffer.restore.remote(str(snapshot)))
             except RayTaskError as exc:  # the buffer actor's own error, without Ray's traceback around it
                 cause = exc.cause if isinstance(exc.cause, RLLockError) else None
                 raise RLLockError(str(cause or exc).splitlines()[0]) from None
             log.info("replay buffer restored: %d transitions", restored)
+        return buffer
+
+    def _start_pool(self) -> ActorPool:
+        """The self-play actors, laid out over the cluster's free CPUs and GPUs."""
+        config = self.config
         resources = ray.cluster_resources()
-        layout = plan_layout(
+        self.layout = layout = plan_layout(
             config.selfplay,
             cpus=resources.get("CPU", 1),
             gpus=resources.get("GPU", 0),
@@ -216,7 +233,7 @@ class _Run:
             config.mcts,
             config.method,
             layout,
-            config.seed * 1000 + 1 + c.episodes,
+            config.seed * 1000 + 1 + self.counters.episodes,
             self.buffer,
         )
         log.info(
@@ -229,40 +246,56 @@ class _Run:
             config.minutes,
             self.recorder.logdir,
         )
+        return pool
+
+    def _selfplay(self, pool: ActorPool) -> None:
+        """Self-play and learn until Ctrl-C, the last learner step, or the end of the budget less what the
+        final validation needs; then stop the actors."""
+        c, learner = self.counters, self.learner
         weights = [ray.put(jax.device_get(learner.params))]
         pool.submit_all(weights, c.version)
         start, base_seconds = time.monotonic(), c.seconds
-        self.layout = layout
         while (
-            not self.interrupted
-            and not self.schedule.over(time.monotonic() + final_reserve(self._validation_estimate(), config))
-            and not self.pacing.reached_max(learner.step)
+            not self.interrupted and self._selfplay_time_left() and not self.pacing.reached_max(learner.step)
         ):
-            oldest = pool.oldest_version()
-            can_learn = self.pacing.can_learn(
-                step=learner.step,
-                transitions=c.transitions,
-                version=c.version,
-                oldest_version=c.version if oldest is None else oldest,
-            )
-            timeout = 0.0 if can_learn else min(1.0, max(0.0, self.schedule.deadline - time.monotonic()))
-            for actor, stats in pool.collect(timeout):
-                self._count(stats)
-                pool.submit(actor, weights, c.version)
-            if not pool.alive():
-                raise RLLockError("every self-play actor has failed; see the log above")
-            if can_learn and self._learn():
-                weights = [ray.put(jax.device_get(learner.params))]
+            weights = self._turn(pool, weights)
             c.seconds = base_seconds + time.monotonic() - start
             self._periodic(time.monotonic())
         pool.shutdown()  # batches under way are dropped: the budget is a hard limit
         c.seconds = base_seconds + time.monotonic() - start
-        self._charts()  # the curves end at the final step
-        if not self.interrupted:
-            self._validate_if_it_fits(time.monotonic(), final=True)
-        self._checkpoint()
+
+    def _selfplay_time_left(self) -> bool:
+        """Whether the budget has time left once the final validation's share is kept for it."""
+        return not self.schedule.over(
+            time.monotonic() + final_reserve(self._validation_estimate(), self.config)
+        )
+
+    def _turn(self, pool: ActorPool, weights: list[ray.ObjectRef]) -> list[ray.ObjectRef]:
+        """Collect the finished batches (waiting up to 1 s for one when the learner may not step), hand
+        their actors the current weights, then take a learner step if pacing allows; returns the weights
+        to hand out next."""
+        c, learner = self.counters, self.learner
+        oldest = pool.oldest_version()
+        can_learn = self.pacing.can_learn(
+            step=learner.step,
+            transitions=c.transitions,
+            version=c.version,
+            oldest_version=c.version if oldest is None else oldest,
+        )
+        timeout = 0.0 if can_learn else min(1.0, max(0.0, self.schedule.deadline - time.monotonic()))
+        for actor, stats in pool.collect(timeout):
+            self._count(stats)
+            pool.submit(actor, weights, c.version)
+        if not pool.alive():
+            raise RLLockError("every self-play actor has failed; see the log above")
+        if can_learn and self._learn():
+            return [ray.put(jax.device_get(learner.params))]
+        return weights
+
+    def _result(self) -> dict:
+        c = self.counters
         return {
-            "steps": learner.step,
+            "steps": self.learner.step,
             "episodes": c.episodes,
             "selfplay_success_rate": c.successes / max(c.episodes, 1),
             "validation": self.last_score,
@@ -270,7 +303,7 @@ class _Run:
             "seconds": time.monotonic() - self.began,
             "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
             "simulations_per_sec": c.simulations / max(c.seconds, 1e-9),
-            "actors": layout.actors,
+            "actors": self.layout.actors,
             "logdir": str(self.recorder.logdir),
             "interrupted": self.interrupted,
             "peak_rss_mb": dict(self.memory),
@@ -362,7 +395,7 @@ class _Run:
             self.batch_seconds,
             self.layout.episodes,
             self.layout.groups,
-            self.config.validation_episodes * len(self.validation_tasks),
+            self.validation_plan.total_episodes,
             self.validation_seconds,
         )
 
@@ -384,68 +417,17 @@ class _Run:
         self._validate()
 
     def _validate(self) -> None:
-        c, step = self.counters, self.learner.step
-        seed = self.config.seed + 7
-        scores, wins = [], []
-        for task, searchers in zip(self.validation_tasks, self.searchers):
-            episodes, seconds = evaluate(
-                searchers, self.learner.params, task, jax.random.PRNGKey(seed), seed=seed
-            )
-            won = [e for e in episodes if e.success]
-            wins += [(task, e) for e in won]
-            scores.append(
-                {
-                    "task": f"{task.shape_name} K={task.pieces}",
-                    "success_rate": len(won) / len(episodes),
-                    "valid": len(won),
-                    "episodes": len(episodes),
-                    "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
-                    "seconds": seconds,
-                }
-            )
-        seconds = sum(s["seconds"] for s in scores)
-        score = {
-            "success_rate": float(np.mean([s["success_rate"] for s in scores])),
-            "valid": len(wins),
-            "episodes": sum(s["episodes"] for s in scores),
-            "mean_return": float(np.mean([s["mean_return"] for s in scores])),
-            "seconds": seconds,
-            "time_per_valid_s": seconds / len(wins) if wins else None,
-        }
-        if self.tasks is not None:
-            score["groups"] = {group.spec: s for group, s in zip(self.tasks.groups, scores)}
-            for group, s in score["groups"].items():
-                tag = re.sub(r"[^\w.\-]", "_", group)  # TensorBoard's tag characters: cube4_6-9
-                self.recorder.scalars(
-                    {
-                        f"validation/{tag}/success_rate": s["success_rate"],
-                        f"validation/{tag}/mean_return": s["mean_return"],
-                    },
-                    step,
-                )
-        self.validation_seconds = seconds
-        self.last_score = score
-        self.recorder.scalars(
-            {
-                "validation/success_rate": score["success_rate"],
-                "validation/mean_return": score["mean_return"],
-            },
-            step,
-        )
-        if wins:
-            self.recorder.scalars({"validation/time_per_valid_s": score["time_per_valid_s"]}, step)
+        step, plan = self.learner.step, self.validation_plan
+        result = validation.summarize(plan, validation.play(plan, self.learner.params))
+        score = self.last_score = result.score
+        self.validation_seconds = score["seconds"]
+        self.recorder.scalars(validation.scalars(score), step)
         log.info(
             "validation at step %d: %d/%d valid (%.1f%%) in %.0f s",
             step,
             score["valid"],
             score["episodes"],
             100 * score["success_rate"],
-            seconds,
+            score["seconds"],
         )
-        if validation_rank(score) > (c.best_rate, c.best_return) or self.recorder.best.latest_step() is None:
-            c.best_rate, c.best_return = max(validation_rank(score), (c.best_rate, c.best_return))
-            assembly = None
-            if wins:
-                task, episode = wins[0]
-                assembly = (task, task.topology.to_grid(final_labels(task, episode.final)))
-            self.recorder.best_checkpoint(step, self.learner.state(), score, c, assembly)
+        validation.keep_best(result, self.learner, self.recorder, self.counters)

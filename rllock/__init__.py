@@ -11,12 +11,13 @@ stays light):
     verify(labels, removal="straight")             the full verifier's verdict on a label grid
     read_assembly(path)                            (labels grid, metadata) of an assembly.json or .puz
 
-Layers: the library is `rllock` (core: shapes, topology, reference and fast checkers, env, verifier;
-search: network, mcts, solver, inference; files: assembly, checkpoint, export, meshes, render). The
-packages `actors` and `learner` build on it, `orchestration` (training loop, Ray actor pool, generation
-on Ray) sits above them, and the command line
-(`orchestration.cli`) calls it. No module of `rllock` imports the layers above it at
-module level.
+Layers, each importing only from itself and the ones before it (tests/test_structure.py checks every
+import): `rllock.errors`, `rllock.config` and `rllock.process` at the base; `rllock.core` (shapes,
+topology, the reference and the compiled checkers, the environment, the verifier, task sets);
+`rllock.files` (assembly files, checkpoints, export, pictures); `rllock.search` (the network, MCTS, the
+solver, inference, shipped checkpoints). The packages `actors` and `learner` build on the library,
+`orchestration` (the training loop, the Ray actor pool, generation on Ray) sits above them, and the
+command line (`orchestration.cli`) and the benches (`orchestration.bench`) above everything.
 """
 
 from __future__ import annotations

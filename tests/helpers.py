@@ -49,7 +49,6 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     import jax
 
     from learner.learner import Learner, LearnerConfig
-    from rllock.config import to_json
     from rllock.files import checkpoint as ckpt
 
     task = make_task(shape, pieces)
@@ -57,8 +56,8 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     config = TrainConfig(shape=shape, pieces=pieces, method=method, net=net, mcts=mcts, init=init)
     mngr = ckpt.manager(run / "best", keep=1)
     counters = {"seconds": seconds, "episodes": 40}
-    ckpt.save(mngr, step, learner.state(), ckpt.meta(to_json(config), task, step, validation, counters,
-                                                     [ckpt.provenance()]))  # fmt: skip
+    meta = ckpt.Metadata.of(config, task, step, validation, counters, [ckpt.provenance()])
+    ckpt.save(mngr, step, learner.state(), meta)
     mngr.close()
     return learner
 
@@ -69,7 +68,6 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     import jax
 
     from learner.learner import Learner, LearnerConfig
-    from rllock.config import to_json
     from rllock.core.tasks import parse_tasks
     from rllock.files import checkpoint as ckpt
 
@@ -78,8 +76,8 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     learner = Learner(None, net, LearnerConfig(), jax.random.PRNGKey(3))
     config = TrainConfig(tasks=spec, net=net, mcts=mcts)
     mngr = ckpt.manager(run / "best", keep=1)
-    ckpt.save(mngr, step, learner.state(), ckpt.meta(to_json(config), tasks.identity(), step, None, {},
-                                                     [ckpt.provenance()]))  # fmt: skip
+    meta = ckpt.Metadata.of(config, tasks.identity(), step, None, {}, [ckpt.provenance()])
+    ckpt.save(mngr, step, learner.state(), meta)
     mngr.close()
     return learner
 

@@ -9,7 +9,7 @@ import pytest
 from learner.learner import Learner, LearnerConfig
 from learner.replay import ReplayBuffer
 from orchestration.recorder import validation_rank
-from rllock.config import TrainConfig, to_json
+from rllock.config import TrainConfig
 from rllock.core.env import make_task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
@@ -65,7 +65,7 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
 def _save(tmp_path, task, learner):
     config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
     mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
-    ckpt.save(mngr, learner.step, learner.state(), ckpt.meta(to_json(config), task, learner.step, None, {}))
+    ckpt.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step))
     mngr.close()
     return tmp_path / "run"
 

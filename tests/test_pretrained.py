@@ -19,7 +19,6 @@ from rllock.files import checkpoint as ckpt
 from rllock.search import pretrained
 from rllock.search.inference import (
     SuccessRate,
-    is_multitask,
     load_policy,
     local_groups,
     play_round,
@@ -89,7 +88,7 @@ def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
     total = sum(f.stat().st_size for f in ckpt.SHIPPED.rglob("*") if f.is_file()) if names else 0
     assert total < 40 * 2**20  # the package stays small
     for name in names:
-        if is_multitask(ckpt.read_meta(ckpt.SHIPPED / name)):  # `general`: any task on its canvas
+        if ckpt.read_metadata(ckpt.SHIPPED / name).multitask:  # `general`: any task on its canvas
             policy = load_policy(name, task=make_task("cube4", 8))
             assert policy.net.task_planes and policy.task.pieces == 8, name
         else:

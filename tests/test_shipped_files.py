@@ -90,7 +90,7 @@ def test_ship_writes_no_absolute_path(tmp_path, monkeypatch):
         for path in (target / "meta" / "metadata", target / "state" / pretrained.COMMIT_SUCCESS):
             text = path.read_text()
             assert str(tmp_path) not in text and not machine_paths(path.read_bytes()), (cwd, path, text)
-        shipped = ckpt.read_meta(target)
+        shipped = json.loads((target / "meta" / "metadata").read_text())
         assert shipped["shipped"]["from"] == "run/best/7"
         assert shipped["config"]["logdir"] == "run" and shipped["config"]["init"] == "general"
         assert shipped["sessions"][0]["command"] == "rllock train --logdir run --init=general"
@@ -104,10 +104,10 @@ def test_ship_writes_no_absolute_path(tmp_path, monkeypatch):
 
 
 def test_portable_paths():
-    assert pretrained.portable("runs/cube4-k8/best/3901") == "runs/cube4-k8/best/3901"
-    assert pretrained.portable(Path.cwd() / "runs" / "x" / "best" / "5") == "runs/x/best/5"
-    assert pretrained.portable("/nowhere/runs/cube4-k9/best/5703") == "cube4-k9/best/5703"
-    assert pretrained.portable("/nowhere/runs/cube4-k9/checkpoints/5703") == "cube4-k9/checkpoints/5703"
-    assert pretrained.portable("/nowhere/cube6-k22") == "cube6-k22"
-    assert pretrained.portable("/nowhere/x/general/state", 2) == "general/state"
-    assert pretrained.portable(ckpt.SHIPPED / "general") == "rllock/checkpoints/general"
+    assert ckpt.portable("runs/cube4-k8/best/3901") == "runs/cube4-k8/best/3901"
+    assert ckpt.portable(Path.cwd() / "runs" / "x" / "best" / "5") == "runs/x/best/5"
+    assert ckpt.portable("/nowhere/runs/cube4-k9/best/5703") == "cube4-k9/best/5703"
+    assert ckpt.portable("/nowhere/runs/cube4-k9/checkpoints/5703") == "cube4-k9/checkpoints/5703"
+    assert ckpt.portable("/nowhere/cube6-k22") == "cube6-k22"
+    assert ckpt.portable("/nowhere/x/general/state", 2) == "general/state"
+    assert ckpt.portable(ckpt.SHIPPED / "general") == "rllock/checkpoints/general"

@@ -41,7 +41,7 @@ from rllock.core.tasks import parse_tasks, random_shape
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files.assembly import read_assembly
-from rllock.files.checkpoint import find_step_dir, read_meta
+from rllock.files.checkpoint import find_step_dir, read_metadata
 from rllock.search import pretrained
 from rllock.search.canvas import augment_canvas, canvas_episode
 from rllock.search.inference import load_policy, with_simulations
@@ -354,7 +354,7 @@ def test_bench_transfer_runs_every_arm_and_knows_which_shapes_were_trained(tmp_p
     assert row.zero_shot.valid == row.untrained.valid == row.solver.valid == 1
     table = format_transfer_table([row], dict(count=1, batch=8, time_limit=30), "rllock bench transfer")
     assert "1 wanted, batches of 8, 30 s limit per arm" in table and "| box:3x3x2 K=2 | no | 2 |" in table
-    meta = read_meta(find_step_dir(tmp_path / "run"))
+    meta = read_metadata(find_step_dir(tmp_path / "run"))
     assert trained_on(meta, make_task("box:4x3x2", 4)) and not trained_on(meta, make_task("box:3x4x2", 4))
     single = tmp_path / "single"
     save_run(single, "box:4x3x2", 3, net=MULTI_NET, mcts=MULTI_MCTS)
@@ -387,5 +387,5 @@ def test_multitask_validation_scores_each_group_in_tensorboard_and_keeps_the_bes
     events.Reload()
     tags = set(events.Tags()["scalars"])
     assert {"validation/box_4x3x2_3/success_rate", "validation/cube3_3/success_rate"} <= tags
-    meta = read_meta(find_step_dir(tmp_path))
-    assert meta["task"]["tasks"] == "box:4x3x2:3,cube3:3" and meta["validation"]["groups"]
+    meta = read_metadata(find_step_dir(tmp_path))
+    assert meta.task["tasks"] == "box:4x3x2:3,cube3:3" and meta.validation["groups"]

@@ -17,7 +17,7 @@ from pathlib import Path
 from orchestration.bench.paper import PaperTask, parse_paper_tasks
 from rllock.config import METHODS
 from rllock.errors import RLLockError
-from rllock.files.checkpoint import find_step_dir, read_meta
+from rllock.files.checkpoint import open_checkpoint
 from rllock.search.inference import generate, load_policy
 
 log = logging.getLogger(__name__)
@@ -67,10 +67,10 @@ def ablation_cell(
     run = root / method / task.name
     if not run.is_dir():
         return AblationCell(method, task.name, None, None, 0, 0, 0.0)
-    meta = read_meta(find_step_dir(run))
-    minutes = meta.get("counters", {}).get("seconds", 0.0) / 60
+    checkpoint = open_checkpoint(run)
+    minutes = checkpoint.metadata.counters.get("seconds", 0.0) / 60
     start = time.perf_counter()
-    policy = load_policy(run)
+    policy = load_policy(checkpoint)
     if policy.method != method or policy.task.pieces != task.pieces:
         raise RLLockError(
             f"{run} holds a {policy.method} checkpoint for K={policy.task.pieces}, "

@@ -126,16 +126,16 @@ def cmd_bench_transfer(args: argparse.Namespace) -> int:
     from orchestration.bench.transfer import (
         bench_transfer_task,
         format_transfer_table,
-        multitask_meta,
+        multitask_checkpoint,
         parse_transfer_tasks,
         row_json,
     )
     from rllock.search.inference import check_simulations
 
     tasks = parse_transfer_tasks(args.tasks)
-    multitask_meta(args.checkpoint)  # a wrong checkpoint is an error before any work
+    checkpoint = multitask_checkpoint(args.checkpoint)  # a wrong checkpoint is an error before any work
     check_simulations(args.simulations)
-    bench_one = partial(bench_transfer_task, args.checkpoint, simulations=args.simulations)
+    bench_one = partial(bench_transfer_task, checkpoint, simulations=args.simulations)
     return task_table(args, "transfer", tasks, bench_one, format_transfer_table, row_json)
 
 

@@ -26,8 +26,8 @@ from orchestration.bench.paper import (
 from rllock.core.env import Task, make_task
 from rllock.core.shapes import grid_sha256
 from rllock.errors import RLLockError
-from rllock.files.checkpoint import find_step_dir, read_meta, shipped_names, task_identity
-from rllock.search.inference import is_multitask, load_policy, untrained_like, with_simulations
+from rllock.files.checkpoint import Checkpoint, Metadata, open_checkpoint, shipped_names, task_identity
+from rllock.search.inference import load_policy, untrained_like, with_simulations
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,
 # on the paper's 8^3 canvas, two piece counts each.
@@ -72,18 +72,18 @@ class TransferRow:
     per_task_simulations: int | None
 
 
-def multitask_meta(checkpoint: str) -> dict:
-    """The metadata of a multi-task checkpoint; any other is a clear error."""
-    meta = read_meta(find_step_dir(checkpoint))
-    if not is_multitask(meta):
+def multitask_checkpoint(checkpoint: str | Checkpoint) -> Checkpoint:
+    """A multi-task checkpoint, opened; any other is a clear error."""
+    opened = open_checkpoint(checkpoint)
+    if not opened.metadata.multitask:
         raise RLLockError(
             f"checkpoint {checkpoint} was trained for one task; bench transfer needs --tasks runs"
         )
-    return meta
+    return opened
 
 
 def bench_transfer_task(
-    checkpoint: str,
+    checkpoint: str | Checkpoint,
     task: TransferTask,
     *,
     count: int,
@@ -94,19 +94,18 @@ def bench_transfer_task(
 ) -> TransferRow:
     """One row; `simulations` (None: the checkpoint's own) sets the search of the zero-shot and untrained
     arms, the per-task checkpoint searches as it was trained."""
-    meta = multitask_meta(checkpoint)
+    opened = multitask_checkpoint(checkpoint)
     warm_process(task.shape, task.pieces)
-    t = make_task(task.shape, task.pieces, meta["task"]["removal"])
-    seen = trained_on(meta, t)
+    t = make_task(task.shape, task.pieces, opened.metadata.removal)
+    seen = trained_on(opened.metadata, t)
     protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
-    zero, policy = policy_arm(
-        lambda: with_simulations(load_policy(checkpoint, task=t), simulations), **protocol
-    )
+    zero, policy = policy_arm(lambda: with_simulations(load_policy(opened, task=t), simulations), **protocol)
     untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
     per_task, own = None, None
     if task.name in shipped_names():
-        expect = task_identity(t, read_meta(find_step_dir(task.name))["task"]["canvas"])
-        per_task, own = policy_arm(lambda: load_policy(task.name, expect), **protocol)
+        shipped = open_checkpoint(task.name)
+        expect = task_identity(t, shipped.metadata.canvas)
+        per_task, own = policy_arm(lambda: load_policy(shipped, expect), **protocol)
     solver = solver_arm(t, count=count, time_limit=time_limit, seed=seed)
     own_simulations = None if own is None else own.mcts.simulations
     return TransferRow(
@@ -114,9 +113,9 @@ def bench_transfer_task(
     )
 
 
-def trained_on(meta: dict, task: Task) -> bool:
+def trained_on(meta: Metadata, task: Task) -> bool:
     """Whether `task`'s shape is one of the named training shapes of a multi-task checkpoint."""
-    return grid_sha256(task.topology.grid) in meta["task"]["shapes_sha256"]
+    return grid_sha256(task.topology.grid) in meta.task["shapes_sha256"]
 
 
 def row_json(row: TransferRow) -> dict:

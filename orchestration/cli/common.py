@@ -8,9 +8,13 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
+
+if TYPE_CHECKING:
+    from rllock.files.checkpoint import Metadata
 
 
 def positive_float(text: str) -> float:
@@ -129,7 +133,7 @@ def add_checkpoint_task_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
 
 
-def expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
+def expected_task(args: argparse.Namespace, saved: Metadata) -> dict | None:
     """The identity of the task named on the command line (if one was named), to compare with the
     checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own."""
     if args.shape is None and args.pieces is None:
@@ -139,8 +143,8 @@ def expected_task(args: argparse.Namespace, saved: dict) -> dict | None:
     from rllock.core.env import make_task
     from rllock.files.checkpoint import task_identity
 
-    task = make_task(args.shape, args.pieces, args.removal or saved["removal"], resolution=args.resolution)
-    return task_identity(task, saved["canvas"])
+    task = make_task(args.shape, args.pieces, args.removal or saved.removal, resolution=args.resolution)
+    return task_identity(task, saved.canvas)
 
 
 def load_for(args: argparse.Namespace):
@@ -148,20 +152,20 @@ def load_for(args: argparse.Namespace):
     task (checked against --shape and --pieces when named), or the named task for a multi-task
     checkpoint; searching with --simulations when given."""
     from rllock.core.env import make_task
-    from rllock.files.checkpoint import find_step_dir, read_meta
-    from rllock.search.inference import is_multitask, load_policy, with_simulations
+    from rllock.files.checkpoint import open_checkpoint
+    from rllock.search.inference import load_policy, with_simulations
 
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
-    meta = read_meta(find_step_dir(Path(args.checkpoint)))
+    checkpoint = open_checkpoint(args.checkpoint)
+    meta = checkpoint.metadata
     task, expect = None, None
-    if is_multitask(meta):
+    if meta.multitask:
         if args.shape is None or args.pieces is None:
             raise RLLockError(
                 f"checkpoint {args.checkpoint} serves many tasks: name one with --shape and --pieces"
             )
-        removal = args.removal or meta["task"]["removal"]
-        task = make_task(args.shape, args.pieces, removal, resolution=args.resolution)
+        task = make_task(args.shape, args.pieces, args.removal or meta.removal, resolution=args.resolution)
     else:
-        expect = expected_task(args, meta["task"])
-    return with_simulations(load_policy(args.checkpoint, expect, task=task), args.simulations)
+        expect = expected_task(args, meta)
+    return with_simulations(load_policy(checkpoint, expect, task=task), args.simulations)

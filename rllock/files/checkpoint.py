@@ -3,8 +3,10 @@
 A training run's log directory holds `checkpoints/<step>/` (the latest few) and `best/<step>/` (the
 checkpoint with the best validation success rate). Each step directory has `state/` (params, optimizer
 state, step, PRNG key: an orbax StandardSave, restored device-independently against an abstract tree
-built on this host) and `meta/metadata` (JSON, `meta`): the task identity, the run's whole config (the
-one document that both `--resume` and `generate` read), the validation score and the run's counters.
+built on this host) and `meta/metadata` (JSON): the task identity, the run's whole config (the one
+document that both `--resume` and `generate` read), the validation score and the run's counters. That
+document is read and written only here, as a typed `Metadata`; `open_checkpoint` finds a step directory
+and reads it once.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import platform
 import re
 import subprocess
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +27,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from rllock.config import TrainConfig, from_flat, from_json
+from rllock.config import TrainConfig, from_flat, from_json, to_json
 from rllock.core.env import Task, make_task
 from rllock.core.shapes import from_xfastest, grid_sha256, to_xfastest
 from rllock.core.verifier import CHECKER_VERSION
@@ -35,6 +38,10 @@ META_VERSION = 2
 # Trained checkpoints shipped inside the package (see rllock.search.pretrained), reached by name.
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 SHIPPED_NAME = re.compile(r"^[a-z][a-z0-9]*(-k[0-9]+)?$")
+# An absolute path inside a command line: at its start, after a space or after `--flag=`.
+_ABSOLUTE_IN_COMMAND = re.compile(r"(?<![^\s=])/[^\s]*")
+# The folder that holds the `rllock` package: the repository, or site-packages.
+_PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 
 
 def shipped_names(folder: Path | None = None) -> list[str]:
@@ -45,47 +52,116 @@ def shipped_names(folder: Path | None = None) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if (p / "meta" / "metadata").is_file())
 
 
+@dataclass(frozen=True)
+class Metadata:
+    """A checkpoint's metadata. `task` is its task identity: `task_identity` for a single-task run, or
+    `rllock.core.tasks.TaskSet.identity` (with a "tasks" key) for a multi-task one; `config` the run's
+    whole config, with a concrete canvas; `sessions` the `provenance` of each process that trained the
+    run (one more per resume); `shipped`, for a checkpoint shipped in the package, where it came from."""
+
+    step: int
+    task: dict
+    config: TrainConfig
+    validation: dict | None = None
+    counters: dict = field(default_factory=dict)
+    sessions: tuple[dict, ...] = ()
+    shipped: dict | None = None
+
+    @property
+    def multitask(self) -> bool:
+        """Whether the network was trained for many tasks (`rllock train --tasks`)."""
+        return "tasks" in self.task
+
+    @property
+    def canvas(self) -> int:
+        return int(self.task["canvas"])
+
+    @property
+    def removal(self) -> str:
+        return str(self.task["removal"])
+
+    def describe_task(self) -> str:
+        """The task in words, for messages and tables."""
+        if self.multitask:
+            return f"tasks {self.task['tasks']}"
+        dims = "x".join(str(d) for d in self.task["dimensions"])
+        return f"{self.task['shape']} ({dims}) K={self.task['pieces']}, removal {self.removal}"
+
+    @staticmethod
+    def of(
+        config: TrainConfig,
+        task: Task | dict,
+        step: int,
+        validation: dict | None = None,
+        counters: dict | None = None,
+        sessions: tuple[dict, ...] | list[dict] = (),
+    ) -> Metadata:
+        """The metadata of a run's checkpoint: `task` is the run's task (its identity is taken on the
+        config's canvas) or a multi-task run's identity."""
+        identity = task if isinstance(task, dict) else task_identity(task, config.net.canvas)
+        return Metadata(step, identity, config, validation, counters or {}, tuple(sessions))
+
+    def to_json(self) -> dict:
+        doc = {
+            "format": FORMAT,
+            "version": META_VERSION,
+            "step": self.step,
+            "task": self.task,
+            "config": to_json(self.config),
+            "validation": self.validation,
+            "counters": self.counters,
+            "sessions": list(self.sessions),
+        }
+        return doc if self.shipped is None else {**doc, "shipped": self.shipped}
+
+    @staticmethod
+    def from_json(doc: dict) -> Metadata:
+        """The metadata of `doc`, of this version or version 1 (which saved the run's settings flat, with
+        the network's and the search's beside them)."""
+        if "config" in doc:
+            config = from_json(TrainConfig, doc["config"])
+        else:
+            config = from_flat(TrainConfig, {**doc["train"], **doc.get("net", {}), **doc.get("mcts", {})})
+        return Metadata(
+            step=int(doc["step"]),
+            task=doc["task"],
+            config=config,
+            validation=doc.get("validation"),
+            counters=doc.get("counters") or {},
+            sessions=tuple(doc.get("sessions") or ()),
+            shipped=doc.get("shipped"),
+        )
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A step directory and its metadata, read once."""
+
+    step_dir: Path
+    metadata: Metadata
+
+
+def open_checkpoint(path: str | Path | Checkpoint) -> Checkpoint:
+    """The checkpoint at `path` (see `find_step_dir`), its metadata read; a `Checkpoint` as it is."""
+    if isinstance(path, Checkpoint):
+        return path
+    step_dir = find_step_dir(Path(path))
+    return Checkpoint(step_dir, read_metadata(step_dir))
+
+
 def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = None) -> TrainConfig:
     """The config of the training run in `logdir`, read from its newest readable checkpoint, with
     `minutes` more to train (and a new step limit, when given)."""
     for step in saved_steps(logdir / "checkpoints")[::-1]:
         try:
-            meta = read_meta(logdir / "checkpoints" / str(step))
+            config = read_metadata(logdir / "checkpoints" / str(step)).config
         except RLLockError:
             continue
-        config = (
-            from_json(TrainConfig, meta["config"])
-            if "config" in meta
-            else from_flat(TrainConfig, meta["train"])
-        )
         limit = max_learner_steps if max_learner_steps is not None else config.max_learner_steps
         return dataclasses.replace(config, logdir=str(logdir), minutes=minutes, max_learner_steps=limit)
     raise RLLockError(
         f"cannot resume {logdir}: it holds no readable checkpoint (start it again without --resume)"
     )
-
-
-def meta(
-    config: dict,
-    task: Task | dict,
-    step: int,
-    validation: dict | None,
-    counters: dict,
-    sessions: list[dict] | None = None,
-) -> dict:
-    """A checkpoint's metadata; `config` is the run's `TrainConfig` as JSON, with a concrete canvas;
-    `task`: the run's task, or the identity of a multi-task run (`rllock.core.tasks.TaskSet.identity`);
-    `sessions`: the `provenance` of each process that trained the run (one more per resume)."""
-    return {
-        "format": FORMAT,
-        "version": META_VERSION,
-        "step": step,
-        "task": task if isinstance(task, dict) else task_identity(task, config["net"]["canvas"]),
-        "config": config,
-        "validation": validation,
-        "counters": counters,
-        "sessions": sessions or [],
-    }
 
 
 def _commit() -> str | None:
@@ -124,11 +200,42 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def portable(path: str | Path, tail: int | None = None) -> str:
+    """`path` as a shipped file records it, naming nothing of the machine that wrote it. A relative
+    path stays as it is. An absolute one becomes relative to the current directory when it lies
+    under it (`runs/cube4-k9/best/5703` from the directory that holds `runs/`); else relative to the
+    folder that holds the `rllock` package when under that (`rllock/checkpoints/cube4-k9`); else its
+    last `tail` parts, by default the run's folder and the rest below it: from the folder above
+    `best/` or `checkpoints/` (`/data/runs/cube4-k9/best/5703` gives `cube4-k9/best/5703`), or the
+    last part alone where there is no such folder (a run's log directory, `/tmp/cube6-k22` gives
+    `cube6-k22`)."""
+    path = Path(path)
+    if not path.is_absolute():
+        return str(path)
+    for candidate in (path, path.resolve()):
+        for base in (Path.cwd(), Path.cwd().resolve(), _PACKAGE_ROOT):
+            if candidate.is_relative_to(base) and base != Path(base.anchor):
+                return str(candidate.relative_to(base))
+    parts = path.parts[1:]
+    if tail is None:
+        tail = 1
+        for i in range(len(parts) - 1, 0, -1):
+            if parts[i] in ("best", "checkpoints"):
+                tail = len(parts) - i + 1
+                break
+    return str(Path(*parts[-tail:])) if parts else "."
+
+
+def portable_command(command: str) -> str:
+    """A command line with every absolute path in it made `portable`."""
+    return _ABSOLUTE_IN_COMMAND.sub(lambda m: portable(m.group()), command)
+
+
 def provenance() -> dict:
     """What made a checkpoint, for the record: command, commit, machine and date."""
     device = jax.devices()[0]
     return {
-        "command": " ".join(["rllock", *sys.argv[1:]]),
+        "command": portable_command(" ".join(["rllock", *sys.argv[1:]])),
         "commit": _commit(),
         "machine": f"{os.cpu_count()} x {_cpu_model()}, {device.platform} ({device.device_kind})",
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -172,13 +279,15 @@ def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
     )
 
 
-def save(mngr: ocp.CheckpointManager, step: int, state: Any, meta: dict) -> None:
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: Metadata) -> None:
     """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
     if step in mngr.all_steps():
         mngr.delete(step)
     mngr.save(
         step,
-        args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+        args=ocp.args.Composite(
+            state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(metadata.to_json())
+        ),
         force=True,
     )
     mngr.wait_until_finished()
@@ -213,14 +322,18 @@ def find_step_dir(path: str | Path, shipped: Path | None = None) -> Path:
     )
 
 
-def read_meta(step_dir: Path) -> dict:
+def read_metadata(step_dir: Path) -> Metadata:
     try:
-        meta = json.loads((step_dir / "meta" / "metadata").read_text())
+        doc = json.loads((step_dir / "meta" / "metadata").read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {exc}") from None
-    if meta.get("format") != FORMAT:
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise RLLockError(f"{step_dir} is not an RL-Lock checkpoint")
-    return meta
+    try:
+        return Metadata.from_json(doc)
+    except (KeyError, TypeError, ValueError) as exc:
+        problem = f"{type(exc).__name__}: {exc}"
+        raise RLLockError(f"checkpoint {step_dir} has damaged metadata ({problem})") from None
 
 
 def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any:

@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 from tqdm import tqdm
 
-from rllock.config import MCTSConfig, NetConfig, from_json
+from rllock.config import MCTSConfig, NetConfig
 from rllock.core.env import Task, assembly_key, final_labels
 from rllock.core.verifier import CHECKER_VERSION
 from rllock.errors import RLLockError
@@ -47,55 +47,45 @@ class Policy:
     step: int
 
 
-def _configs(meta: dict) -> tuple[NetConfig, MCTSConfig]:
-    if "config" in meta:
-        return from_json(NetConfig, meta["config"]["net"]), from_json(MCTSConfig, meta["config"]["mcts"])
-    return from_json(NetConfig, meta["net"]), from_json(MCTSConfig, meta["mcts"])  # metadata version 1
-
-
-def load_network(path: str | Path) -> tuple[Path, dict, NetConfig, MCTSConfig, dict]:
-    """(step folder, metadata, network config, search config, parameters) of a checkpoint (a run's log
-    directory: its best checkpoint; or a shipped name). Only the parameters are read, against a template
-    from `jax.eval_shape`."""
-    step_dir = ckpt.find_step_dir(Path(path))
-    meta = ckpt.read_meta(step_dir)
-    net, mcts = _configs(meta)
+def load_network(source: str | Path | ckpt.Checkpoint) -> tuple[ckpt.Checkpoint, NetConfig, dict]:
+    """(checkpoint, network config, parameters) of a checkpoint (a run's log directory: its best
+    checkpoint; a step directory; a shipped name; or one already opened). Only the parameters are read,
+    against a template from `jax.eval_shape`."""
+    checkpoint = ckpt.open_checkpoint(source)
+    net = checkpoint.metadata.config.net
     template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
-    params = ckpt.restore_like(step_dir, template, partial=True)["params"]
-    return step_dir, meta, net, mcts, params
+    params = ckpt.restore_like(checkpoint.step_dir, template, partial=True)["params"]
+    return checkpoint, net, params
 
 
-def is_multitask(meta: dict) -> bool:
-    """Whether a checkpoint's network was trained for many tasks (`rllock train --tasks`)."""
-    return "tasks" in meta["task"]
-
-
-def check_fits(task: Task, saved: dict, where: Path) -> None:
+def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> None:
     """A task a multi-task checkpoint can serve: on its canvas, with its removal mode and checkers."""
-    fit_canvas(task, NetConfig(canvas=saved["canvas"]), f"checkpoint {where}")
+    fit_canvas(task, NetConfig(canvas=saved.canvas), f"checkpoint {where}")
     for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
-        if saved.get(key) != here:
-            raise RLLockError(f"checkpoint {where} was made for {key} {saved.get(key)!r}, not {here!r}")
+        if saved.task.get(key) != here:
+            raise RLLockError(f"checkpoint {where} was made for {key} {saved.task.get(key)!r}, not {here!r}")
 
 
-def load_policy(path: str | Path, expect: dict | None = None, *, task: Task | None = None) -> Policy:
-    """The policy in a checkpoint (a run's log directory: its best checkpoint; or a shipped name).
-    A single-task checkpoint plays its own task; `expect`, a task identity, must match it. A multi-task
-    checkpoint plays `task`, which must fit its canvas."""
-    step_dir, meta, net, mcts, params = load_network(path)
-    method = meta.get("config", {}).get("method", "rl-lock")
-    if is_multitask(meta):
+def load_policy(
+    source: str | Path | ckpt.Checkpoint, expect: dict | None = None, *, task: Task | None = None
+) -> Policy:
+    """The policy in a checkpoint (a run's log directory: its best checkpoint; a shipped name; or a
+    checkpoint already opened). A single-task checkpoint plays its own task; `expect`, a task identity,
+    must match it. A multi-task checkpoint plays `task`, which must fit its canvas."""
+    checkpoint, net, params = load_network(source)
+    meta, step_dir = checkpoint.metadata, checkpoint.step_dir
+    if meta.multitask:
         if task is None:
             raise RLLockError(
-                f"checkpoint {step_dir} serves many tasks ({meta['task']['tasks']}): name one with "
+                f"checkpoint {step_dir} serves many tasks ({meta.task['tasks']}): name one with "
                 "--shape and --pieces"
             )
-        check_fits(task, meta["task"], step_dir)
+        check_fits(task, meta, step_dir)
     else:
         if expect is not None:
-            ckpt.check_same_task(meta["task"], expect, step_dir)
-        task = ckpt.task_from_identity(meta["task"])
-    return Policy(task, net, mcts, method, params, str(step_dir), int(meta["step"]))
+            ckpt.check_same_task(meta.task, expect, step_dir)
+        task = ckpt.task_from_identity(meta.task)
+    return Policy(task, net, meta.config.mcts, meta.config.method, params, str(step_dir), meta.step)
 
 
 def check_simulations(simulations: int | None) -> None:

@@ -10,6 +10,7 @@ exists. Shipped files name no absolute path of the machine that made them (`port
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 import re
@@ -19,7 +20,6 @@ from pathlib import Path
 import jax
 import orbax.checkpoint as ocp
 
-from rllock.config import NetConfig, from_json
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.search.network import init_params
@@ -27,18 +27,16 @@ from rllock.search.network import init_params
 
 def describe(name: str, folder: Path | None = None) -> dict:
     """One line of `rllock pretrained`: task, settings, training, validation and provenance."""
-    meta = ckpt.read_meta((ckpt.SHIPPED if folder is None else folder) / name)
-    task, config, counters = meta["task"], meta["config"], meta.get("counters", {})
-    validation = meta.get("validation") or {}
-    sessions = meta.get("sessions", [])
+    meta = ckpt.read_metadata((ckpt.SHIPPED if folder is None else folder) / name)
+    task, validation, sessions = meta.task, meta.validation or {}, list(meta.sessions)
     return {
         "name": name,
-        "task": f"tasks {task['tasks']}" if "tasks" in task else f"{task['shape']} K={task['pieces']}",
-        "canvas": task["canvas"],
-        "simulations": config["mcts"]["simulations"],
-        "training_minutes": round(counters.get("seconds", 0.0) / 60, 1),
-        "init": config.get("init"),  # the checkpoint it was fine-tuned from; its training is not counted
-        "learner_steps": meta["step"],
+        "task": f"tasks {task['tasks']}" if meta.multitask else f"{task['shape']} K={task['pieces']}",
+        "canvas": meta.canvas,
+        "simulations": meta.config.mcts.simulations,
+        "training_minutes": round(meta.counters.get("seconds", 0.0) / 60, 1),
+        "init": meta.config.init,  # the checkpoint it was fine-tuned from; its training is not counted
+        "learner_steps": meta.step,
         "validation_success": validation.get("success_rate"),
         "validation_episodes": validation.get("episodes"),
         "commit": sessions[0]["commit"] if sessions else None,
@@ -57,10 +55,6 @@ def machine_summary(machine: str | None) -> str:
     return f"{cores} cores" if platform == "cpu" else f"{cores} cores, {kind}"
 
 
-# An absolute path inside a command line: at its start, after a space or after `--flag=`.
-_ABSOLUTE_IN_COMMAND = re.compile(r"(?<![^\s=])/[^\s]*")
-# The folder that holds the `rllock` package: the repository, or site-packages.
-_PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 # orbax's marker of a finished save in `state/`: it checks that the file exists, not what it says.
 COMMIT_SUCCESS = "commit_success.txt"
 
@@ -70,50 +64,20 @@ def commit_line(state: str) -> str:
     return f"Checkpoint commit was successful to {state}"
 
 
-def portable(path: str | Path, tail: int | None = None) -> str:
-    """`path` as a shipped file records it, naming nothing of the machine that wrote it. A relative
-    path stays as it is. An absolute one becomes relative to the current directory when it lies
-    under it (`runs/cube4-k9/best/5703` from the directory that holds `runs/`); else relative to the
-    folder that holds the `rllock` package when under that (`rllock/checkpoints/cube4-k9`); else its
-    last `tail` parts, by default the run's folder and the rest below it: from the folder above
-    `best/` or `checkpoints/` (`/data/runs/cube4-k9/best/5703` gives `cube4-k9/best/5703`), or the
-    last part alone where there is no such folder (a run's log directory, `/tmp/cube6-k22` gives
-    `cube6-k22`)."""
-    path = Path(path)
-    if not path.is_absolute():
-        return str(path)
-    for candidate in (path, path.resolve()):
-        for base in (Path.cwd(), Path.cwd().resolve(), _PACKAGE_ROOT):
-            if candidate.is_relative_to(base) and base != Path(base.anchor):
-                return str(candidate.relative_to(base))
-    parts = path.parts[1:]
-    if tail is None:
-        tail = 1
-        for i in range(len(parts) - 1, 0, -1):
-            if parts[i] in ("best", "checkpoints"):
-                tail = len(parts) - i + 1
-                break
-    return str(Path(*parts[-tail:])) if parts else "."
-
-
-def portable_meta(meta: dict) -> dict:
+def portable_meta(meta: ckpt.Metadata) -> ckpt.Metadata:
     """`meta` with the absolute paths that training writes into it made `portable`: the config's
     `logdir` and `init` and those in each session's command line. Nothing else changes."""
-    meta = {**meta}
-    config = meta.get("config")
-    if isinstance(config, dict):
-        meta["config"] = {
-            key: portable(value) if key in ("logdir", "init") and isinstance(value, str) else value
-            for key, value in config.items()
-        }
-    if isinstance(meta.get("sessions"), list):
-        meta["sessions"] = [
-            {**s, "command": _ABSOLUTE_IN_COMMAND.sub(lambda m: portable(m.group()), s["command"])}
-            if isinstance(s, dict) and isinstance(s.get("command"), str)
-            else s
-            for s in meta["sessions"]
-        ]
-    return meta
+    config = meta.config
+    init = None if config.init is None else ckpt.portable(config.init)
+    sessions = tuple(
+        {**s, "command": ckpt.portable_command(s["command"])} if isinstance(s.get("command"), str) else s
+        for s in meta.sessions
+    )
+    return dataclasses.replace(
+        meta,
+        config=dataclasses.replace(config, logdir=ckpt.portable(config.logdir), init=init),
+        sessions=sessions,
+    )
 
 
 def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
@@ -129,15 +93,16 @@ def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
     if not ckpt.SHIPPED_NAME.match(name):
         raise RLLockError(f"bad checkpoint name {name!r}: use lower-case words like cube4-k9 or sofa-k19")
     step_dir = ckpt.find_step_dir(source)
-    meta = portable_meta(ckpt.read_meta(step_dir))
-    net = from_json(NetConfig, meta["config"]["net"])
+    meta = portable_meta(ckpt.read_metadata(step_dir))
+    net = meta.config.net
     template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
     params = ckpt.restore_like(step_dir, template, partial=True)
-    meta["shipped"] = {
+    shipped = {
         "name": name,
-        "from": portable(step_dir),
+        "from": ckpt.portable(step_dir),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
+    meta = dataclasses.replace(meta, shipped=shipped)
     into = ckpt.SHIPPED if into is None else into
     into.mkdir(parents=True, exist_ok=True)
     staging = into / f".{name}.partial"
@@ -146,10 +111,12 @@ def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
     saver = ocp.StandardCheckpointer()
     saver.save((staging / "state").absolute(), params)
     saver.wait_until_finished()
-    (staging / "meta" / "metadata").write_text(json.dumps(meta))
+    (staging / "meta" / "metadata").write_text(json.dumps(meta.to_json()))
     target = into / name
     # orbax wrote the absolute staging path in it; the file must stay, its words are for people.
-    (staging / "state" / COMMIT_SUCCESS).write_text(commit_line(portable((target / "state").absolute(), 2)))
+    (staging / "state" / COMMIT_SUCCESS).write_text(
+        commit_line(ckpt.portable((target / "state").absolute(), 2))
+    )
     shutil.rmtree(target, ignore_errors=True)
     staging.rename(target)
     return target

@@ -1,0 +1,137 @@
+"""Validation of a training run: what it plays, playing it, its score, and keeping the best checkpoint.
+
+Every validation of a run plays the same fixed tasks from the same seeds, so that scores compare across
+learner steps: the run's task, or one fixed task per group of a multi-task run, each in one lockstep
+group in the driver beside the learner. `play` runs the searches and `keep_best` writes the best
+checkpoint; the rest is pure.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import jax
+import numpy as np
+
+from actors.selfplay import evaluate
+from learner.learner import Learner
+from orchestration.recorder import Counters, Recorder, validation_rank
+from rllock.config import TrainConfig
+from rllock.core.env import Task, final_labels
+from rllock.core.tasks import TaskSet
+from rllock.search.base import Episode, Player
+from rllock.search.methods import players
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What every validation of a run plays."""
+
+    tasks: tuple[Task, ...]
+    searchers: tuple[list[Player], ...]  # per task: one lockstep group of `episodes` episodes, compiled once
+    episodes: int  # per task
+    seed: int  # the key and the episodes' seeds, the same at every validation
+    groups: tuple[str, ...] | None  # multi-task runs: each task's group, as written in --tasks
+
+    @staticmethod
+    def of(config: TrainConfig, task: Task | None, tasks: TaskSet | None) -> Plan:
+        seed = config.seed + 7
+        chosen = [task] if tasks is None else tasks.validation_tasks(seed)
+        return Plan(
+            tasks=tuple(chosen),
+            searchers=tuple(
+                players(config.method, config.net, config.mcts, t, config.validation_episodes, 1)
+                for t in chosen
+            ),
+            episodes=config.validation_episodes,
+            seed=seed,
+            groups=None if tasks is None else tuple(group.spec for group in tasks.groups),
+        )
+
+    @property
+    def total_episodes(self) -> int:
+        return self.episodes * len(self.tasks)
+
+
+@dataclass(frozen=True)
+class Result:
+    score: dict
+    """As checkpoint metadata and `train` keep it: success_rate and mean_return (means over the tasks),
+    valid, episodes, seconds, time_per_valid_s (None when no episode was valid) and, in a multi-task run,
+    groups: each group's own score by its spec, with its task (`task_score`)."""
+    first_win: tuple[Task, Episode] | None
+    """The first valid episode with its task: the assembly kept beside a best checkpoint."""
+
+
+def play(plan: Plan, params) -> list[tuple[list[Episode], float]]:
+    """Each task's episodes and the seconds they took."""
+    return [
+        evaluate(searchers, params, task, jax.random.PRNGKey(plan.seed), seed=plan.seed)
+        for task, searchers in zip(plan.tasks, plan.searchers)
+    ]
+
+
+def task_score(task: Task, episodes: list[Episode], seconds: float) -> dict:
+    valid = len([e for e in episodes if e.success])
+    return {
+        "task": f"{task.shape_name} K={task.pieces}",
+        "success_rate": valid / len(episodes),
+        "valid": valid,
+        "episodes": len(episodes),
+        "mean_return": float(np.mean([e.final.placed for e in episodes])) / task.pieces,
+        "seconds": seconds,
+    }
+
+
+def summarize(plan: Plan, played: list[tuple[list[Episode], float]]) -> Result:
+    """The validation's result from what `play` returned."""
+    scores = [task_score(task, episodes, seconds) for task, (episodes, seconds) in zip(plan.tasks, played)]
+    valid = sum(s["valid"] for s in scores)
+    seconds = sum(s["seconds"] for s in scores)
+    score = {
+        "success_rate": float(np.mean([s["success_rate"] for s in scores])),
+        "valid": valid,
+        "episodes": sum(s["episodes"] for s in scores),
+        "mean_return": float(np.mean([s["mean_return"] for s in scores])),
+        "seconds": seconds,
+        "time_per_valid_s": seconds / valid if valid else None,
+    }
+    if plan.groups is not None:
+        score["groups"] = dict(zip(plan.groups, scores))
+    wins = ((task, e) for task, (episodes, _) in zip(plan.tasks, played) for e in episodes if e.success)
+    return Result(score, next(wins, None))
+
+
+def scalars(score: dict) -> dict[str, float]:
+    """The TensorBoard scalars of a validation: each group's (multi-task runs), then the means."""
+    values = {}
+    for group, s in score.get("groups", {}).items():
+        tag = re.sub(r"[^\w.\-]", "_", group)  # TensorBoard's tag characters: cube4_6-9
+        values[f"validation/{tag}/success_rate"] = s["success_rate"]
+        values[f"validation/{tag}/mean_return"] = s["mean_return"]
+    values["validation/success_rate"] = score["success_rate"]
+    values["validation/mean_return"] = score["mean_return"]
+    if score["valid"]:
+        values["validation/time_per_valid_s"] = score["time_per_valid_s"]
+    return values
+
+
+def assembly(win: tuple[Task, Episode] | None) -> tuple[Task, np.ndarray] | None:
+    """The task and labels grid of a valid episode's assembly."""
+    if win is None:
+        return None
+    task, episode = win
+    return task, task.topology.to_grid(final_labels(task, episode.final))
+
+
+def keep_best(result: Result, learner: Learner, recorder: Recorder, counters: Counters) -> None:
+    """Save `learner` as the best checkpoint, with the first valid assembly, when the validation ranks
+    above the best so far (`recorder.validation_rank`) or there is no best checkpoint yet; the bar in
+    `counters` never drops."""
+    best, rank = (counters.best_rate, counters.best_return), validation_rank(result.score)
+    if rank > best or recorder.best.latest_step() is None:
+        counters.best_rate, counters.best_return = max(rank, best)
+        recorder.best_checkpoint(
+            learner.step, learner.state(), result.score, counters, assembly(result.first_win)
+        )
