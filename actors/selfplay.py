@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -91,7 +92,7 @@ class PlayStats:
 
 
 def evaluate(
-    searchers: list[Player],
+    searchers: Sequence[Player],
     params,
     task: Task,
     key: jax.Array,
@@ -116,17 +117,17 @@ class SelfPlayWorker:
         self.simulations_per_decision = 0 if spec.method == "ppo" else spec.mcts.simulations
         # Compiled searches by action shape (M, n): a multi-task run meets a few piece sizes again and
         # again, and compiling costs seconds.
-        self.compiled: dict[tuple[int, int], list[Player]] = {}
+        self.compiled: dict[tuple[int, int], Sequence[Player]] = {}
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
-        self.params = None
+        self.params: dict | None = None
         self.version = -1
         self.batches = 0
 
     def set_weights(self, params, version: int) -> None:
         self.params, self.version = params, version
 
-    def searchers(self, task: Task) -> list[Player]:
+    def searchers(self, task: Task) -> Sequence[Player]:
         spec = self.spec
         shape = space(spec.method).action_shape(task, spec.mcts)
         if shape not in self.compiled:

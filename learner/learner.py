@@ -94,7 +94,7 @@ class Learner:
         self.opt_state = self.optimizer.init(self.params)
         self.step = 0
         if task is not None:
-            self._canvas_idx = canvas_index(task, net_config.canvas)
+            self._canvas_idx = canvas_index(task, net_config.canvas_side())
             self._symmetries = symmetries(task.topology) if config.symmetries else None
 
     def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:

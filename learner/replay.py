@@ -21,8 +21,8 @@ class ReplayBuffer:
         n_voxels: int,
         candidates: int,
         piece_size: int,
-        label_dtype: type = np.int8,
-        voxel_dtype: type = np.int16,
+        label_dtype: type[np.signedinteger] = np.int8,
+        voxel_dtype: type[np.signedinteger] = np.int16,
     ):
         """Dtypes as `rllock.core.env.compact_dtypes(task)` gives them: int8 labels, int16 voxel numbers
         for K <= 127 and N <= 32767."""

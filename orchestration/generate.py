@@ -48,7 +48,11 @@ def generate_on_ray(
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))
         options = dict(num_cpus=1, runtime_env={"env_vars": actor_env(1)})
-        pool = [GenerateActor.options(**options).remote(host_policy, batch) for _ in range(actors)]
+        # mypy skips class decorators: @ray.remote made GenerateActor an ActorClass, which has .options.
+        pool = [
+            GenerateActor.options(**options).remote(host_policy, batch)  # type: ignore[attr-defined]
+            for _ in range(actors)
+        ]
         start = time.perf_counter()
         collector = Collector(
             policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress

@@ -98,8 +98,9 @@ class ActorPool:
             max_task_retries=-1,
             runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
         )
+        # mypy skips class decorators: @ray.remote made SelfPlayActor an ActorClass, which has .options.
         self.actors = [
-            SelfPlayActor.options(**options).remote(
+            SelfPlayActor.options(**options).remote(  # type: ignore[attr-defined]
                 PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), seed + i, buffer
             )
             for i in range(layout.actors)

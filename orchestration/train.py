@@ -26,11 +26,11 @@ import logging
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
 import ray
-from ray.actor import ActorHandle
 from ray.exceptions import RayTaskError
 
 from actors.selfplay import TaskSpec
@@ -91,7 +91,7 @@ def _setup(
         None if init is None or config.net.canvas is not None else f"the --init checkpoint {config.init}"
     )
     net = fit_canvas(task, net, canvas_of)
-    return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas), init
+    return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas_side()), init
 
 
 def _resume(logdir: Path, learner: Learner, identity: dict) -> tuple[Counters, dict | None, list[dict]]:
@@ -114,7 +114,8 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     config, task, tasks, identity, init = _setup(config, resume=resume)
     logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
-    counters, last_score, sessions = Counters(), None, []
+    counters, last_score = Counters(), None
+    sessions: list[dict] = []
     if resume:
         counters, last_score, sessions = _resume(logdir, learner, identity)
     elif ckpt.saved_steps(logdir / "checkpoints"):
@@ -147,7 +148,7 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
 
 def _buffer_shape(
     config: TrainConfig, task: Task | None, tasks: TaskSet | None
-) -> tuple[tuple[int, ...], tuple[type, type]]:
+) -> tuple[tuple[int, ...], tuple[type[np.signedinteger], type[np.signedinteger]]]:
     """The replay buffer's transition shape (states, candidates, piece size) and its two dtypes."""
     if tasks is None:
         assert task is not None
@@ -202,10 +203,13 @@ class _Run:
         self._checkpoint()
         return self._result()
 
-    def _start_buffer(self, resume: bool) -> ActorHandle:
-        """The replay buffer actor, holding the run's snapshot when resumed."""
+    def _start_buffer(self, resume: bool) -> Any:
+        """The replay buffer actor, holding the run's snapshot when resumed. Its handle is Any: Ray types an
+        ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
         shape, dtypes = _buffer_shape(self.config, self.task, self.tasks)
-        buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(self.config.buffer_capacity, *shape, *dtypes)
+        buffer: Any = ray.remote(num_cpus=0)(ReplayBuffer).remote(
+            self.config.buffer_capacity, *shape, *dtypes
+        )
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
             try:
@@ -227,8 +231,9 @@ class _Run:
             reserved_cpus=1,
             node_cpus=largest_node_cpus(),
         )
+        spec, described = self._played()
         pool = ActorPool(
-            TaskSpec.of(self.task) if self.tasks is None else self.tasks,
+            spec,
             config.net,
             config.mcts,
             config.method,
@@ -238,7 +243,7 @@ class _Run:
         )
         log.info(
             "training %s: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; logs in %s",
-            f"{self.task.shape_name} K={self.task.pieces}" if self.task else f"tasks {self.tasks.spec}",
+            described,
             layout.actors,
             layout.mode,
             layout.episodes,
@@ -247,6 +252,14 @@ class _Run:
             self.recorder.logdir,
         )
         return pool
+
+    def _played(self) -> tuple[TaskSpec | TaskSet, str]:
+        """What the self-play actors play, and its name for the log."""
+        if self.tasks is not None:
+            return self.tasks, f"tasks {self.tasks.spec}"
+        if self.task is None:
+            raise ValueError("a run needs a task or a task set")
+        return TaskSpec.of(self.task), f"{self.task.shape_name} K={self.task.pieces}"
 
     def _selfplay(self, pool: ActorPool) -> None:
         """Self-play and learn until Ctrl-C, the last learner step, or the end of the budget less what the
@@ -315,7 +328,7 @@ class _Run:
         self.lag = c.version - stats.version
         self.batch_seconds = min(stats.seconds, self.batch_seconds or stats.seconds)
         self.memory["actor"] = max(self.memory["actor"], stats.peak_rss_mb)
-        buffer_stats = ray.get(self.buffer.stats.remote())
+        buffer_stats: dict[str, float] = ray.get(self.buffer.stats.remote())
         c.transitions = int(buffer_stats["added"])
         self.buffer_successes = int(buffer_stats["successes"])
         self.memory["buffer"] = buffer_stats["peak_rss_mb"]
@@ -323,7 +336,7 @@ class _Run:
     def _learn(self) -> bool:
         """One learner step; True when it published a new weights version."""
         learner, c = self.learner, self.counters
-        sample = ray.get(
+        sample: dict[str, np.ndarray] = ray.get(
             self.buffer.sample.remote(
                 self.config.learner.batch_size, learner.next_seed(), self.config.success_fraction
             )

@@ -9,6 +9,7 @@ checkpoint; the rest is pure.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -29,7 +30,8 @@ class Plan:
     """What every validation of a run plays."""
 
     tasks: tuple[Task, ...]
-    searchers: tuple[list[Player], ...]  # per task: one lockstep group of `episodes` episodes, compiled once
+    # per task: one lockstep group of `episodes` episodes, compiled once
+    searchers: tuple[Sequence[Player], ...]
     episodes: int  # per task
     seed: int  # the key and the episodes' seeds, the same at every validation
     groups: tuple[str, ...] | None  # multi-task runs: each task's group, as written in --tasks
@@ -37,7 +39,12 @@ class Plan:
     @staticmethod
     def of(config: TrainConfig, task: Task | None, tasks: TaskSet | None) -> Plan:
         seed = config.seed + 7
-        chosen = [task] if tasks is None else tasks.validation_tasks(seed)
+        if tasks is not None:
+            chosen = tasks.validation_tasks(seed)
+        elif task is not None:
+            chosen = [task]
+        else:
+            raise ValueError("a run needs a task or a task set")
         return Plan(
             tasks=tuple(chosen),
             searchers=tuple(

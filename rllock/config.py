@@ -39,6 +39,12 @@ class NetConfig:
         """The canvas side must be a multiple of this (each level halves it)."""
         return 1 << (len(self.features) - 1)
 
+    def canvas_side(self) -> int:
+        """The canvas side of a config that has one (`fitted`)."""
+        if self.canvas is None:
+            raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
+        return self.canvas
+
     def fitted(self, dims: tuple[int, ...]) -> NetConfig:
         """This config with a concrete canvas for a shape of `dims` (the smallest that fits, unless set)."""
         if self.canvas is not None:

@@ -225,6 +225,13 @@ def add_table_bench_args(p: argparse.ArgumentParser, unit: str) -> None:
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     bench = subparsers.add_parser("bench", help="benchmarks").add_subparsers(dest="bench", required=True)
+    _add_throughput(bench)
+    _add_tables(bench)
+    learning.add_commands(bench)
+
+
+def _add_throughput(bench: argparse._SubParsersAction) -> None:
+    """The speed benches: the compiled checkers, the solver on the paper's cubes, self-play."""
     p = bench.add_parser("checkers", help="raw chunks sampled and checked per second on one core")
     p.add_argument("--shape", default="cube6")
     p.add_argument("--pieces", type=int, default=25)
@@ -240,6 +247,26 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_solve)
 
+    p = bench.add_parser("selfplay", help="self-play episodes and simulations per second for actor counts")
+    p.add_argument("--actors", default="1,2", help="comma-separated actor counts")
+    p.add_argument("--shape", default="cube4")
+    p.add_argument("--pieces", type=int, default=9)
+    p.add_argument("--seconds", type=positive_float, default=60.0, help="measured seconds per actor count")
+    p.add_argument("--simulations", type=int, default=256)
+    p.add_argument("--canvas", type=int, default=None, help="default: the smallest that fits the shape")
+    p.add_argument("--episodes-per-batch", type=int, default=8)
+    p.add_argument(
+        "--evaluation",
+        choices=EVALUATION_MODES,
+        default="auto",
+        help=field_docs(SelfPlayConfig).get("evaluation"),
+    )
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_selfplay)
+
+
+def _add_tables(bench: argparse._SubParsersAction) -> None:
+    """The table benches, each under the paper's protocol per arm or run."""
     p = bench.add_parser(
         "paper", help="the paper's tasks: shipped checkpoints, untrained search and solver, beside the paper"
     )
@@ -276,22 +303,3 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     add_simulations_arg(p, " in the zero-shot and untrained arms")
     add_table_bench_args(p, "arm")
     p.set_defaults(func=cmd_bench_transfer)
-
-    learning.add_commands(bench)
-
-    p = bench.add_parser("selfplay", help="self-play episodes and simulations per second for actor counts")
-    p.add_argument("--actors", default="1,2", help="comma-separated actor counts")
-    p.add_argument("--shape", default="cube4")
-    p.add_argument("--pieces", type=int, default=9)
-    p.add_argument("--seconds", type=positive_float, default=60.0, help="measured seconds per actor count")
-    p.add_argument("--simulations", type=int, default=256)
-    p.add_argument("--canvas", type=int, default=None, help="default: the smallest that fits the shape")
-    p.add_argument("--episodes-per-batch", type=int, default=8)
-    p.add_argument(
-        "--evaluation",
-        choices=EVALUATION_MODES,
-        default="auto",
-        help=field_docs(SelfPlayConfig).get("evaluation"),
-    )
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(func=cmd_bench_selfplay)

@@ -8,6 +8,7 @@ import argparse
 import json
 import logging
 import sys
+from typing import TypedDict
 
 from orchestration.cli.common import (
     add_checkpoint_args,
@@ -17,6 +18,16 @@ from orchestration.cli.common import (
 )
 
 log = logging.getLogger("rllock")
+
+
+class ArmRow(TypedDict):
+    """One arm of `rllock bench learning`, as its JSON document holds it."""
+
+    valid: int
+    episodes: int
+    seconds: float
+    success_rate: float
+    time_per_valid_s: float | None
 
 
 def learning_ratio(
@@ -35,7 +46,7 @@ def cmd_bench_learning(args: argparse.Namespace) -> int:
     from rllock.search.inference import generate, untrained_like
 
     trained = load_for(args)
-    rows = {}
+    rows: dict[str, ArmRow] = {}
     for name, policy in (("trained", trained), ("untrained", untrained_like(trained, args.seed))):
         r = generate(policy, count=args.count, batch=args.batch, time_limit=args.time_limit, seed=args.seed)
         rows[name] = {
@@ -107,12 +118,12 @@ def cmd_bench_success(args: argparse.Namespace) -> int:
         "| checkpoint | step | task | canvas | simulations | valid / episodes | success | 95% interval | s |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
-        low, high = r["interval_95"]
+    for row in rows:
+        low, high = row["interval_95"]
         lines.append(
-            f"| {r['checkpoint']} | {r['step']} | {r['task']} | {r['canvas']} | {r['simulations']} | "
-            f"{r['valid']} / {r['episodes']} | {100 * r['success_rate']:.1f}% | "
-            f"{100 * low:.1f}-{100 * high:.1f}% | {r['seconds']:.0f} |"
+            f"| {row['checkpoint']} | {row['step']} | {row['task']} | {row['canvas']} | "
+            f"{row['simulations']} | {row['valid']} / {row['episodes']} | {100 * row['success_rate']:.1f}% | "
+            f"{100 * low:.1f}-{100 * high:.1f}% | {row['seconds']:.0f} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
     return 0

@@ -15,6 +15,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypedDict
 
 import jax
 
@@ -102,6 +103,15 @@ def warm_process(shape: str, pieces: int) -> None:
     jax.block_until_ready(jax.numpy.zeros(1) + 1)
 
 
+class ArmProtocol(TypedDict):
+    """The protocol every network arm of a row runs: `policy_arm`'s keyword arguments."""
+
+    count: int
+    batch: int
+    time_limit: float
+    seed: int
+
+
 def policy_arm(
     load: Callable[[], Policy], *, count: int, batch: int, time_limit: float, seed: int
 ) -> tuple[Arm, Policy]:
@@ -129,7 +139,7 @@ def solver_arm(task: Task, *, count: int, time_limit: float, seed: int) -> Arm:
 
 def bench_paper_task(task: PaperTask, *, count: int, batch: int, time_limit: float, seed: int) -> PaperRow:
     warm_process(task.shape, task.pieces)
-    protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
+    protocol = ArmProtocol(count=count, batch=batch, time_limit=time_limit, seed=seed)
     shipped = task.name in shipped_names()
     trained = None
     if shipped:

@@ -9,6 +9,7 @@ import time
 
 import jax
 import ray
+from ray.actor import ActorHandle
 
 from actors.selfplay import TaskSpec
 from learner.replay import ReplayBuffer
@@ -24,7 +25,8 @@ log = logging.getLogger(__name__)
 def _measure(
     task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float
 ) -> dict:
-    buffer = ray.remote(num_cpus=0)(ReplayBuffer).remote(
+    # Ray types .remote() as ActorHandle | type[ReplayBuffer] (for its method typing); it is a handle.
+    buffer: ActorHandle = ray.remote(num_cpus=0)(ReplayBuffer).remote(  # type: ignore[assignment]
         10_000, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task)
     )
     pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)

@@ -66,7 +66,8 @@ def bench_checkers(
         raise RLLockError(f"--piece must be between 1 and K-1 = {pieces - 1}, got {piece}")
     states = mid_episode_states(task, piece - 1, 8, seed)
     sample_accepted(task, states[0], seed=0, num_samples=16)  # compile before timing
-    rates, accepted, total = [], 0, 0
+    rates: list[float] = []
+    accepted = total = 0
     deadline = time.perf_counter() + seconds
     call = 0
     while time.perf_counter() < deadline or len(rates) < 5:

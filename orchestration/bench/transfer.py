@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from orchestration.bench.paper import (
     Arm,
+    ArmProtocol,
     arm_cell,
     arm_json,
     policy_arm,
@@ -98,7 +99,7 @@ def bench_transfer_task(
     warm_process(task.shape, task.pieces)
     t = make_task(task.shape, task.pieces, opened.metadata.removal)
     seen = trained_on(opened.metadata, t)
-    protocol = dict(count=count, batch=batch, time_limit=time_limit, seed=seed)
+    protocol = ArmProtocol(count=count, batch=batch, time_limit=time_limit, seed=seed)
     zero, policy = policy_arm(lambda: with_simulations(load_policy(opened, task=t), simulations), **protocol)
     untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
     per_task, own = None, None

@@ -165,6 +165,12 @@ def _millimetres(text: str) -> float:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    _add_checks(subparsers)
+    _add_outputs(subparsers)
+
+
+def _add_checks(subparsers: argparse._SubParsersAction) -> None:
+    """verify and solve: an assembly checked, or found without training."""
     p = subparsers.add_parser("verify", help="check every stage of an assembly (.puz or assembly.json)")
     p.add_argument("file")
     p.add_argument(
@@ -182,6 +188,9 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
     p.set_defaults(func=cmd_solve)
 
+
+def _add_outputs(subparsers: argparse._SubParsersAction) -> None:
+    """show and export: pictures of an assembly, and files to make it from."""
     p = subparsers.add_parser(
         "show",
         help="draw an assembly: PNG picture, GIF animation, interactive HTML page",

@@ -59,7 +59,7 @@ def make_task(
     return Task(label, build_topology(grid), pieces, removal)
 
 
-def compact_dtypes(task: Task) -> tuple[type, type]:
+def compact_dtypes(task: Task) -> tuple[type[np.signedinteger], type[np.signedinteger]]:
     """(label dtype, voxel-number dtype): the smallest integers that hold K and N, for stored data."""
     label = np.int8 if task.pieces <= np.iinfo(np.int8).max else np.int16
     voxel = np.int16 if task.size <= np.iinfo(np.int16).max else np.int32

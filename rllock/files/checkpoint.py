@@ -98,7 +98,7 @@ class Metadata:
     ) -> Metadata:
         """The metadata of a run's checkpoint: `task` is the run's task (its identity is taken on the
         config's canvas) or a multi-task run's identity."""
-        identity = task if isinstance(task, dict) else task_identity(task, config.net.canvas)
+        identity = task if isinstance(task, dict) else task_identity(task, config.net.canvas_side())
         return Metadata(step, identity, config, validation, counters or {}, tuple(sessions))
 
     def to_json(self) -> dict:

@@ -315,7 +315,7 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
         ],
     }
     span = hi - lo
-    scene = {
+    scene: dict[str, object] = {
         f"{a}axis": {"range": [float(lo[n]), float(hi[n])], "autorange": False, "title": {"text": a}}
         for n, a in enumerate("xyz")
     }

@@ -65,7 +65,8 @@ def shape_dims(labels: np.ndarray, canvas: int) -> np.ndarray:
     """int[B, 3]: the bounding box of each canvas state's shape (which sits at the origin)."""
     on = labels.reshape(-1, canvas, canvas, canvas) >= 0
     axes = [on.any(axis=(2, 3)), on.any(axis=(1, 3)), on.any(axis=(1, 2))]
-    return np.stack([canvas - np.argmax(a[:, ::-1], axis=1) for a in axes], axis=1)
+    # numpy's stub types any() over some axes as maybe a scalar; over two of four axes it is a [B, C] array.
+    return np.stack([canvas - np.argmax(a[:, ::-1], axis=1) for a in axes], axis=1)  # type: ignore[index]
 
 
 def augment_canvas(sample: dict[str, np.ndarray], canvas: int, seed: int) -> dict[str, np.ndarray]:

@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -124,11 +125,11 @@ def local_groups() -> int:
     return (os.cpu_count() or 1) if jax.default_backend() == "cpu" else 1
 
 
-def searchers_for(policy: Policy, batch: int, groups: int) -> list[Player]:
+def searchers_for(policy: Policy, batch: int, groups: int) -> Sequence[Player]:
     return players(policy.method, policy.net, policy.mcts, policy.task, batch, groups)
 
 
-def play_round(group_searchers: list[Player], policy: Policy, seed: int, round_: int) -> list[Episode]:
+def play_round(group_searchers: Sequence[Player], policy: Policy, seed: int, round_: int) -> list[Episode]:
     """Round `round_` of the protocol with seed `seed` (module docstring)."""
     key = jax.random.fold_in(jax.random.PRNGKey(seed), round_)
     return play_groups(group_searchers, policy.params, policy.task, key, seed=derive_seed(seed, round_))

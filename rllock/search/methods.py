@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from rllock.config import METHODS, MCTSConfig, NetConfig
 from rllock.core.env import Task
 from rllock.errors import RLLockError
@@ -33,7 +35,7 @@ def space(method: str) -> type[NodeStore]:
 
 def players(
     method: str, net: NetConfig, mcts: MCTSConfig, task: Task, episodes: int, groups: int
-) -> list[Player]:
+) -> Sequence[Player]:
     """Who plays `episodes` episodes in `groups` lockstep groups (see `rllock.search.mcts.play_groups`)."""
     if method == "ppo":
         return [PolicyPlayer(PolicyValueNet(net), mcts, task, size) for size in group_sizes(episodes, groups)]
