@@ -25,6 +25,7 @@ from orchestration.cli.common import (
     fresh_out,
     picture_writer,
 )
+from orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.core.verifier import Verdict, verify_labels
 from rllock.errors import RLLockError
@@ -67,20 +68,57 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.core.env import make_task
-    from rllock.search.solver import SearchConfig, search
+    from rllock.core.feasibility import check_feasible
+    from rllock.search.solver import SearchStats
 
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
-    config = SearchConfig()
+    check_feasible(task)
     out = fresh_out(args.out)
-    picture = picture_writer()
+    written: list[Path] = []
+    stats = SearchStats()
     start = time.perf_counter()
-    found = 0
-    with tqdm(
-        total=args.count, desc=f"solve {task.shape_name} K={task.pieces}", unit="assembly", disable=None
-    ) as bar:
-        for f in search(task, seed=args.seed, time_limit=args.time_limit, config=config):
-            found += 1
-            folder = out / f"assembly_{found:03d}"
+    try:
+        with graceful_stop() as stop:
+            _solve_into(task, args, out, written, stats, stop)
+            stopped = stop()
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not is_interrupt(exc):
+            raise
+        stopped = True
+    if stopped:
+        sys.stdout.write(kept("solve", len(written), out))
+        return INTERRUPTED
+    if not written:
+        sys.stdout.write(_nothing_found(task, args, stats))
+        return 1
+    elapsed = time.perf_counter() - start
+    sys.stdout.write(
+        f"solve: {len(written)} valid {assemblies_word(len(written))} of {task.shape_name} "
+        f"K={task.pieces} in {elapsed:.2f} s: {elapsed / len(written):.3f} s per valid assembly -> {out}\n"
+    )
+    return 0
+
+
+def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], stats, stop) -> None:
+    """Search until --count assemblies, --time-limit or `stop()`, writing each (verified) as it comes and
+    adding its folder to `written`; the bar shows the search's progress."""
+    from rllock.search.solver import SearchConfig, search
+
+    config = SearchConfig()
+    picture = picture_writer()
+    desc = f"solve {task.shape_name} K={task.pieces}"
+    with tqdm(total=args.count, desc=desc, unit="assembly", disable=None) as bar:
+
+        def report(s) -> None:
+            best = f"best {s.placed} of {task.pieces - 1} placed"
+            bar.set_postfix_str(f"{s.expansions:,} nodes, {s.restarts} restarts, {best}")
+
+        limit = args.time_limit
+        found = search(
+            task, seed=args.seed, time_limit=limit, config=config, stats=stats, stop=stop, report=report
+        )
+        for f in found:
+            folder = out / f"assembly_{len(written) + 1:03d}"
             write_assembly(
                 folder,
                 f.labels,
@@ -91,22 +129,36 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
                 picture=picture,
             )
+            written.append(folder)
             log.info("wrote %s (%.2f s)", folder, f.seconds)
             bar.update(1)
-            if found >= args.count:
+            if len(written) >= args.count:
                 break
-    elapsed = time.perf_counter() - start
-    if found == 0:
-        sys.stdout.write(
-            f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s\n"
-        )
-        return 1
-    sys.stdout.write(
-        f"solve: {found} valid {assemblies_word(found)} of {task.shape_name} K={task.pieces} "
-        f"in {elapsed:.2f} s: "
-        f"{elapsed / found:.3f} s per valid assembly -> {out}\n"
-    )
-    return 0
+
+
+def _nothing_found(task, args: argparse.Namespace, stats) -> str:
+    """What a search that found nothing reached, why its deepest state's next piece failed, what to try."""
+    from rllock.core.env import rejections
+
+    lines = [
+        f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s "
+        f"({stats.expansions:,} node expansions, {stats.restarts} restarts)",
+        f"  best: {stats.placed} of {task.pieces - 1} pieces placed",
+    ]
+    if stats.deepest is not None:
+        raw, failed = rejections(task, stats.deepest, seed=args.seed, num_samples=512)
+        piece = stats.placed + 1
+        if raw == 0:
+            lines[-1] += f"; piece {piece} cannot grow to n = {task.piece_size} voxels there"
+        else:
+            order = sorted(failed, key=lambda name: -failed[name])
+            lines[-1] += f"; of {raw} chunks sampled for piece {piece}, " + ", ".join(
+                f"{failed[name]} fail {name}" for name in order
+            )
+    fits = task.removal == "straight" and max(task.topology.grid.shape) <= 8
+    more = f"more time (--time-limit {2 * args.time_limit:g})"
+    lines.append("  " + advice(task, fits_general=fits, more=more))
+    return "\n".join(lines) + "\n"
 
 
 def _name(source: str) -> str:

@@ -38,15 +38,25 @@ def add_protocol_args(
     default leaves that flag out."""
     each = f" per {per}" if per else ""
     if count is not None:
-        p.add_argument("--count", type=int, default=count, help=f"valid assemblies to find{each}")
+        p.add_argument(
+            "--count", type=int, default=count, help=f"valid assemblies to find{each} (default %(default)s)"
+        )
     if batch:
         p.add_argument(
-            "--batch", type=int, default=64, help="episodes per batch (one network call per simulation)"
+            "--batch",
+            type=int,
+            default=64,
+            help="episodes per batch (one network call per simulation; default %(default)s)",
         )
     if time_limit is not None:
-        p.add_argument("--time-limit", type=positive_float, default=time_limit, help=f"seconds{each}")
+        p.add_argument(
+            "--time-limit",
+            type=positive_float,
+            default=time_limit,
+            help=f"seconds{each}, a hard limit (default %(default)g)",
+        )
     if seed:
-        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--seed", type=int, default=0, help="same seed, same results (default %(default)s)")
 
 
 def add_task_args(p: argparse.ArgumentParser) -> None:
@@ -68,7 +78,7 @@ def add_task_args(p: argparse.ArgumentParser) -> None:
         default="straight",
         help="straight: one axis slide per piece (default); path: DESIA's multi-move test",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="same seed, same results (default %(default)s)")
 
 
 def assemblies_word(count: int) -> str:
@@ -76,10 +86,19 @@ def assemblies_word(count: int) -> str:
 
 
 def fresh_out(path: str) -> Path:
-    """An output folder that holds no earlier results (they would be overwritten or mixed up)."""
+    """The output folder, made now and checked writable before any work, so that nothing found is lost
+    to a bad --out later; it must hold no earlier results (they would be overwritten or mixed up)."""
     out = Path(path)
-    if out.exists() and (not out.is_dir() or any(out.glob("assembly_*"))):
+    if out.exists() and not out.is_dir():
+        raise RLLockError(f"--out {out} is a file, not a folder")
+    if out.is_dir() and any(out.glob("assembly_*")):
         raise RLLockError(f"--out {out} already holds results; choose another folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RLLockError(f"--out {out}: cannot make the folder ({exc.strerror or exc})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise RLLockError(f"--out {out}: the folder is not writable")
     return out
 
 
@@ -120,9 +139,17 @@ def add_checkpoint_task_args(p: argparse.ArgumentParser) -> None:
     """The search budget and the task (`load_for`): a multi-task checkpoint's task, or a check on a
     single-task checkpoint's own."""
     add_simulations_arg(p)
-    p.add_argument("--shape", default=None, help="optional: fail unless the checkpoint is for this shape")
     p.add_argument(
-        "--pieces", type=int, default=None, help="optional: fail unless the checkpoint is for this K"
+        "--shape",
+        default=None,
+        help="with --pieces: the task, for a multi-task checkpoint (general); for a single-task one, "
+        "a check: fail unless the checkpoint is for this shape",
+    )
+    p.add_argument(
+        "--pieces",
+        type=int,
+        default=None,
+        help="K, with --shape: the task for a multi-task checkpoint, a check for a single-task one",
     )
     p.add_argument(
         "--removal",

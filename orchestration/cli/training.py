@@ -21,6 +21,7 @@ from orchestration.cli.common import (
     ray_on_loopback_unless,
 )
 from orchestration.cli.flags import add_flags, from_flags, given_flags
+from orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
 from rllock.config import EVALUATION_MODES, METHODS, TrainConfig, with_method_defaults
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
@@ -66,12 +67,47 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    out = fresh_out(args.out)
+    from rllock.core.feasibility import check_feasible
+
     if args.actors < 0:
         raise RLLockError(f"--actors must be >= 0, got {args.actors}")
     if args.address and not args.actors:
         raise RLLockError("--address needs --actors N: generation joins a Ray cluster only with actors")
     policy = load_for(args)
+    check_feasible(policy.task)
+    out = fresh_out(args.out)
+    try:
+        with graceful_stop() as stop:
+            result = _generate_into(args, policy, out, stop)
+            stopped = stop()
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not is_interrupt(exc):
+            raise
+        sys.stdout.write(kept("generate", len(list(out.glob("assembly_*"))), out))
+        return INTERRUPTED
+    task = policy.task
+    if stopped:
+        sys.stdout.write(kept("generate", result.valid, out))
+        return INTERRUPTED
+    if result.valid == 0:
+        more = f"more time (--time-limit {2 * args.time_limit:g}) or more simulations (--simulations)"
+        sys.stdout.write(
+            f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
+            f"episodes ({result.seconds:.1f} s)\n"
+            f"  best: {result.best_placed} of {task.pieces - 1} pieces placed\n"
+            f"  {advice(task, fits_general=False, more=more)}\n"
+        )
+        return 1
+    sys.stdout.write(
+        f"generate: {result.valid} valid {assemblies_word(result.valid)} of {task.shape_name} "
+        f"K={task.pieces} from {result.episodes} episodes in {result.seconds:.1f} s: "
+        f"{result.time_per_valid_s:.2f} s per valid assembly -> {args.out}\n"
+    )
+    return 0
+
+
+def _generate_into(args: argparse.Namespace, policy, out: Path, stop):
+    """The protocol's rounds, in this process or on --actors Ray actors, written into `out`."""
     settings = dict(
         count=args.count,
         batch=args.batch,
@@ -84,24 +120,10 @@ def cmd_generate(args: argparse.Namespace) -> int:
         ray_on_loopback_unless(args.address)
         from orchestration.generate import generate_on_ray
 
-        result = generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
-    else:
-        from rllock.search.inference import generate
+        return generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
+    from rllock.search.inference import generate
 
-        result = generate(policy, **settings)
-    task = policy.task
-    if result.valid == 0:
-        sys.stdout.write(
-            f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
-            f"episodes ({result.seconds:.1f} s)\n"
-        )
-        return 1
-    sys.stdout.write(
-        f"generate: {result.valid} valid {assemblies_word(result.valid)} of {task.shape_name} "
-        f"K={task.pieces} from {result.episodes} episodes in {result.seconds:.1f} s: "
-        f"{result.time_per_valid_s:.2f} s per valid assembly -> {args.out}\n"
-    )
-    return 0
+    return generate(policy, stop=stop, **settings)
 
 
 def cmd_pretrained(args: argparse.Namespace) -> int:

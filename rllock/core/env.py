@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rllock.core import compiled_checkers as checkers
 from rllock.core import compiled_sampler as sampler
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.core.shapes import load_shape, piece_size
@@ -90,6 +91,24 @@ def final_labels(task: Task, state: State) -> np.ndarray:
     labels = state.labels.astype(np.int64)
     labels[labels == 0] = task.pieces
     return labels
+
+
+CHECK_NAMES = {
+    checkers.REMOVABLE: "removability",
+    checkers.INTERLOCKING: "interlocking",
+    checkers.CONNECTED: "connectivity of the rest",
+}
+
+
+def rejections(task: Task, state: State, *, seed: int, num_samples: int) -> tuple[int, dict[str, int]]:
+    """Why the next piece is hard to place in `state`: (raw chunks that grew to n voxels, and for each
+    check how many of them fail it) among `num_samples` samples. A chunk may fail several checks."""
+    piece = state.placed + 1
+    raw = sampler.sample_raw(task.topology.arrays, state.labels, piece, task.piece_size, num_samples, seed)
+    if len(raw) == 0:
+        return 0, {}
+    passed = checkers.check_chunks(task.topology.arrays, state.labels, piece, raw, task.removal == "path")
+    return len(raw), {name: int(((passed & bit) == 0).sum()) for bit, name in CHECK_NAMES.items()}
 
 
 def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) -> np.ndarray:

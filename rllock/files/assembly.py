@@ -23,6 +23,7 @@ Nothing is written unless the verifier passes it; `assembly.puz` ends with a com
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -66,6 +67,19 @@ def read_assembly(path: str | Path) -> tuple[np.ndarray, dict]:
     return from_xfastest(labels, dims), data  # type: ignore[arg-type]
 
 
+def _publish(staging: Path, out: Path) -> None:
+    """Move a finished folder into place, so that an interrupted write never leaves a folder of that name
+    half written; an earlier folder of the name (a run's best assembly) is replaced whole."""
+    if out.exists():
+        old = out.parent / f".{out.name}.old"
+        shutil.rmtree(old, ignore_errors=True)
+        out.rename(old)
+        staging.rename(out)
+        shutil.rmtree(old)
+    else:
+        staging.rename(out)
+
+
 def write_assembly(
     out_dir: str | Path,
     labels: np.ndarray,
@@ -78,7 +92,8 @@ def write_assembly(
     picture: PictureWriter | None = None,
 ) -> dict:
     """Verify `labels` and, only if valid, write assembly.json and assembly.puz into `out_dir`, and the
-    picture when a `picture` writer is given.
+    picture when a `picture` writer is given. The files are written into a hidden sibling folder first
+    and that folder is renamed to `out_dir` when all are written.
 
     Returns the JSON document. An invalid assembly here is a bug upstream, so it raises.
     """
@@ -88,7 +103,9 @@ def write_assembly(
             f"refusing to write an invalid assembly (stage {verdict.failed_stage}: {verdict.failed_check})"
         )
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
     n_voxels = int((labels != 0).sum())
     doc = {
         "format": FORMAT,
@@ -114,12 +131,15 @@ def write_assembly(
             "verified_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         },
     }
-    tmp = out / "assembly.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(out / "assembly.json")
-    write_puz(out / "assembly.puz", labels)
-    with open(out / "assembly.puz", "a") as fh:
-        fh.write(f"# verified valid by {CHECKER_NAME} v{CHECKER_VERSION}, removal={removal}\n")
-    if picture is not None:
-        picture(labels, verdict, out)
+    try:
+        (staging / "assembly.json").write_text(json.dumps(doc, indent=1))
+        write_puz(staging / "assembly.puz", labels)
+        with open(staging / "assembly.puz", "a") as fh:
+            fh.write(f"# verified valid by {CHECKER_NAME} v{CHECKER_VERSION}, removal={removal}\n")
+        if picture is not None:
+            picture(labels, verdict, staging)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    _publish(staging, out)
     return doc

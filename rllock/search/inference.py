@@ -14,7 +14,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -141,6 +141,7 @@ class GenerateResult:
     episodes: int
     seconds: float
     time_per_valid_s: float | None
+    best_placed: int = 0  # the most pieces any episode placed (K - 1 in a valid one)
 
     @property
     def success_rate(self) -> float:
@@ -172,6 +173,7 @@ class Collector:
         )
         self.seen: set[bytes] = set()
         self.episodes = 0
+        self.best_placed = 0
         task = policy.task
         self.bar = tqdm(
             total=count,
@@ -187,6 +189,9 @@ class Collector:
     def take(self, episodes: list[Episode], batch_seconds: float) -> None:
         task = self.policy.task
         self.episodes += len(episodes)
+        self.best_placed = max([self.best_placed, *(e.final.placed for e in episodes)])
+        best = f"best {self.best_placed} of {task.pieces - 1} placed"
+        self.bar.set_postfix_str(f"{self.episodes} episodes, {best}", refresh=False)
         for episode in episodes:
             if not episode.success or self.done:
                 continue
@@ -218,7 +223,8 @@ class Collector:
     def result(self, seconds: float) -> GenerateResult:
         self.bar.close()
         valid = len(self.seen)
-        return GenerateResult(valid, self.episodes, seconds, seconds / valid if valid else None)
+        per_valid = seconds / valid if valid else None
+        return GenerateResult(valid, self.episodes, seconds, per_valid, self.best_placed)
 
 
 def generate(
@@ -231,16 +237,17 @@ def generate(
     out: Path | None = None,
     picture: PictureWriter | None = None,
     progress: bool = True,
+    stop: Callable[[], bool] = lambda: False,
 ) -> GenerateResult:
-    """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies or `time_limit`
-    seconds (a round that has started finishes), in this process."""
+    """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies, `time_limit`
+    seconds or `stop()` (a round that has started finishes), in this process."""
     start = time.perf_counter()
     group_searchers = searchers_for(policy, batch, local_groups())
     collector = Collector(
         policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
     )
     round_ = 0
-    while not collector.done and time.perf_counter() - start < time_limit:
+    while not collector.done and time.perf_counter() - start < time_limit and not stop():
         t0 = time.perf_counter()
         collector.take(play_round(group_searchers, policy, seed, round_), time.perf_counter() - t0)
         round_ += 1

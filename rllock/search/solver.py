@@ -11,8 +11,8 @@ the best fixed budget without knowing it.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -26,6 +26,10 @@ from rllock.core.env import (
     initial_state,
     sample_accepted,
 )
+from rllock.core.feasibility import check_feasible
+
+# How often a running search reports its progress, in seconds.
+PROGRESS_EVERY = 0.5
 
 
 @dataclass(frozen=True)
@@ -48,6 +52,27 @@ class Found:
     expansions: int  # node expansions since the previous assembly
 
 
+@dataclass
+class SearchStats:
+    """What a search has done so far, updated in place while it runs (for progress and for saying what
+    a search that found nothing reached)."""
+
+    expansions: int = 0
+    restarts: int = 0
+    found: int = 0
+    deepest: State | None = None  # a state with the most pieces placed so far
+    reported: float = field(default=0.0, repr=False)  # when progress was last reported
+
+    @property
+    def placed(self) -> int:
+        """The most pieces placed in any state reached."""
+        return 0 if self.deepest is None else self.deepest.placed
+
+    def reached(self, state: State) -> None:
+        if self.deepest is None or state.placed > self.deepest.placed:
+            self.deepest = state
+
+
 def luby(i: int) -> int:
     """The i-th term (1-based) of the Luby sequence."""
     k = 1
@@ -58,16 +83,36 @@ def luby(i: int) -> int:
     return luby(i - (1 << (k - 1)) + 1)
 
 
+def _never() -> bool:
+    return False
+
+
 def _dfs(
-    task: Task, rng: np.random.Generator, config: SearchConfig, budget: int, deadline: float, target: int
+    task: Task,
+    rng: np.random.Generator,
+    config: SearchConfig,
+    budget: int,
+    deadline: float,
+    target: int,
+    stats: SearchStats,
+    stop: Callable[[], bool] = _never,
+    report: Callable[[SearchStats], None] | None = None,
 ):
     """One restart: DFS from the root for at most `budget` expansions until a state with `target`
-    placed pieces. Returns (that state or None, expansions used)."""
+    placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
+    counts the expansions and keeps the deepest state, and `report(stats)` is called every
+    PROGRESS_EVERY seconds."""
     expansions = 0
 
     def sample(state: State) -> tuple[np.ndarray, int]:
         nonlocal expansions
         expansions += 1
+        stats.expansions += 1
+        stats.reached(state)
+        now = time.monotonic()
+        if report is not None and now - stats.reported >= PROGRESS_EVERY:
+            stats.reported = now
+            report(stats)
         seed = int(rng.integers(1 << 31))
         accepted = sample_accepted(task, state, seed=seed, num_samples=config.samples_per_node)
         return distinct_subset(accepted, config.children, seed), len(accepted)
@@ -88,7 +133,7 @@ def _dfs(
     root = initial_state(task)
     stack = [children_of(root, sample(root)[0])]
     while stack:
-        if expansions >= budget or time.monotonic() > deadline:
+        if expansions >= budget or time.monotonic() > deadline or stop():
             return None, expansions
         if not stack[-1]:
             stack.pop()
@@ -103,28 +148,41 @@ def _dfs(
 
 
 def search(
-    task: Task, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
+    task: Task,
+    *,
+    seed: int,
+    time_limit: float,
+    config: SearchConfig = SearchConfig(),
+    stats: SearchStats | None = None,
+    stop: Callable[[], bool] = _never,
+    report: Callable[[SearchStats], None] | None = None,
 ) -> Iterator[Found]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
-    writing) until the time limit. Same seed, same sequence."""
+    writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
+    to date (and passed to `report` every PROGRESS_EVERY seconds). A task that provably has no assembly
+    is an error at once (`rllock.core.feasibility`)."""
+    check_feasible(task)
+    stats = SearchStats() if stats is None else stats
     rng = np.random.default_rng(seed)
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
     last, used, restart = start, 0, 0
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not stop():
         restart += 1
-        state, expansions = _dfs(
-            task, rng, config, config.restart_base * luby(restart), deadline, task.pieces - 1
-        )
+        stats.restarts += 1
+        budget = config.restart_base * luby(restart)
+        state, expansions = _dfs(task, rng, config, budget, deadline, task.pieces - 1, stats, stop, report)
         used += expansions
         if state is None:
             continue
+        stats.reached(state)
         labels = final_labels(task, state)
         key = assembly_key(labels)
         if key in seen:
             continue
         seen.add(key)
+        stats.found += 1
         now = time.monotonic()
         yield Found(task.topology.to_grid(labels), now - last, used)
         last, used, restart = now, 0, 0
@@ -139,7 +197,9 @@ def reach_depth(
     restart = 0
     while time.monotonic() < deadline:
         restart += 1
-        state, _ = _dfs(task, rng, config, config.restart_base * luby(restart), deadline, placed)
+        state, _ = _dfs(
+            task, rng, config, config.restart_base * luby(restart), deadline, placed, SearchStats()
+        )
         if state is not None:
             return state
     return None

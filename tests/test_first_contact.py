@@ -1,0 +1,129 @@
+"""What a new user meets first in `solve` and `generate`: a clean stop on Ctrl-C that keeps complete
+folders, a failed search that says what it reached and what to try, and output folders checked before
+any work."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import run_cli
+
+from rllock.core.env import make_task
+from rllock.core.verifier import verify_labels
+from rllock.files.assembly import read_assembly, write_assembly
+from rllock.search.solver import solve
+
+FILES = {"assembly.json", "assembly.puz", "assembly.png"}
+
+
+def _interrupt_after(args: list[str], out: Path, folders: int, timeout: float = 240):
+    """Start `rllock ARGS`, send Ctrl-C once `folders` assembly folders exist; (code, stdout, stderr)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "orchestration.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + timeout
+        while len(list(out.glob("assembly_*"))) < folders:
+            assert proc.poll() is None and time.monotonic() < deadline, "no assemblies came"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    return proc.returncode, stdout, stderr
+
+
+def _complete(out: Path) -> int:
+    """How many assembly folders `out` holds, each checked complete and valid; no half-written one."""
+    folders = sorted(out.glob("assembly_*"))
+    for folder in folders:
+        assert {f.name for f in folder.iterdir()} == FILES, folder
+        labels, _ = read_assembly(folder)
+        assert verify_labels(labels).valid
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging folder left
+    return len(folders)
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_solve_keeps_complete_folders_and_says_so(tmp_path):
+    out = tmp_path / "out"
+    args = ["solve", "--shape", "cube4", "--pieces", "7", "--count", "100000", "--time-limit", "200"]
+    code, stdout, stderr = _interrupt_after([*args, "--out", str(out)], out, folders=3)
+    assert code == 130 and "Traceback" not in stderr, stderr
+    kept = _complete(out)
+    assert kept >= 3 and f"solve: interrupted; kept {kept} valid assemblies in {out}" in stdout
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_generate_keeps_complete_folders_and_says_so(tmp_path):
+    out = tmp_path / "out"
+    args = [
+        "generate",
+        "--checkpoint",
+        "cube4-k7",
+        "--count",
+        "100000",
+        "--batch",
+        "16",
+        "--time-limit",
+        "200",
+    ]
+    code, stdout, stderr = _interrupt_after([*args, "--out", str(out)], out, folders=1)
+    assert code == 130 and "Traceback" not in stderr, stderr
+    kept = _complete(out)
+    word = "assembly" if kept == 1 else "assemblies"
+    assert kept >= 1 and f"generate: interrupted; kept {kept} valid {word} in {out}" in stdout
+
+
+def test_a_failed_solve_says_what_it_reached_and_what_to_try(tmp_path):
+    code, stdout, _ = run_cli(
+        "solve", "--shape", "desia-bunny", "--pieces", "30", "--time-limit", "3", "--out", str(tmp_path / "o")
+    )
+    assert code == 1
+    first, best, tries = stdout.strip().splitlines()
+    assert first.startswith("solve: no valid assembly of desia-bunny K=30 within 3 s (")
+    placed = int(best.split("best: ")[1].split(" of 29")[0])
+    assert (
+        0 < placed < 29 and f"chunks sampled for piece {placed + 1}" in best and "fail removability" in best
+    )
+    assert "more time (--time-limit 6)" in tries and "K=29 or K=31" in tries and "--removal path" in tries
+
+
+def test_a_bad_out_fails_before_any_work(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    started = time.monotonic()
+    code, _, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--out", str(afile))
+    assert code == 2 and err.strip() == f"rllock: error: --out {afile} is a file, not a folder"
+    code, _, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--out", str(afile / "sub"))
+    assert code == 2 and "cannot make the folder" in err and len(err.strip().splitlines()) == 1, err
+    code, _, err = run_cli("generate", "--checkpoint", "cube4-k7", "--out", str(afile / "sub"))
+    assert code == 2 and "cannot make the folder" in err, err
+    assert time.monotonic() - started < 60
+
+
+def test_a_folder_is_written_whole_or_not_at_all(tmp_path):
+    (labels,) = solve(make_task("cube4", 7), count=1, time_limit=60, seed=0)
+    settings = dict(removal="straight", shape="cube4", method={"name": "search"}, seed=0, timings={})
+
+    def broken_picture(labels: np.ndarray, verdict, folder: Path) -> None:
+        (folder / "assembly.png").write_bytes(b"half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_assembly(tmp_path / "assembly_001", labels, picture=broken_picture, **settings)
+    assert list(tmp_path.iterdir()) == []
+    write_assembly(tmp_path / "best", labels, **settings)
+    (tmp_path / "best" / "stale.txt").write_text("from the previous best")
+    write_assembly(tmp_path / "best", labels, **settings)  # a run's best assembly, replaced whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["best"]
+    assert {p.name for p in (tmp_path / "best").iterdir()} == {"assembly.json", "assembly.puz"}
