@@ -1,26 +1,38 @@
 #!/usr/bin/env bash
-# Self-play throughput of this checkout against a baseline commit, measured side by side: the two run
-# alternately, ROUNDS times each, with the same flags, and the medians and their ratio are printed.
-#   bash scripts/bench_side_by_side.sh BASE_COMMIT ROUNDS -- <rllock bench selfplay flags>
+# A bench of this checkout against a baseline commit, measured side by side: the two run alternately,
+# ROUNDS times each, with the same flags, and the medians and their ratio are printed.
+#   bash scripts/bench_side_by_side.sh BASE_COMMIT ROUNDS -- selfplay <rllock bench selfplay flags>
+#   bash scripts/bench_side_by_side.sh BASE_COMMIT ROUNDS -- checkers <rllock bench checkers flags>
 # The baseline is checked out in a temporary git worktree and runs with this checkout's .venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 base="$1"; rounds="$2"; shift 3
+# Without a bench name the flags are bench selfplay's (how the script was first written).
+if [[ "$1" == --* ]]; then bench=selfplay; else bench="$1"; shift; fi
 tmp="$(mktemp -d)"
 trap 'git worktree remove --force "$tmp/base" >/dev/null 2>&1 || true; rm -rf "$tmp"' EXIT
 git worktree add --detach "$tmp/base" "$base" >/dev/null 2>&1
 head_dir="$(pwd)"
+# The command line moved from rllock/cli.py to orchestration/cli/ (commit 12db2f3): run each tree's own.
+cli_of() { if [ -f "$1/orchestration/cli/__main__.py" ]; then echo orchestration.cli; else echo rllock.cli; fi; }
 for i in $(seq "$rounds"); do
-  (cd "$tmp/base" && PYTHONPATH="$tmp/base" "$head_dir/.venv/bin/python" -m orchestration.cli bench selfplay "$@" --json) \
-    > "$tmp/base_$i.json"
-  (cd "$head_dir" && PYTHONPATH="$head_dir" .venv/bin/python -m orchestration.cli bench selfplay "$@" --json) > "$tmp/head_$i.json"
+  (cd "$tmp/base" && PYTHONPATH="$tmp/base" "$head_dir/.venv/bin/python" -m "$(cli_of "$tmp/base")" \
+    bench "$bench" "$@" --json) > "$tmp/base_$i.json"
+  (cd "$head_dir" && PYTHONPATH="$head_dir" .venv/bin/python -m "$(cli_of "$head_dir")" \
+    bench "$bench" "$@" --json) > "$tmp/head_$i.json"
 done
-.venv/bin/python - "$tmp" "$rounds" "$base" <<'PY'
+.venv/bin/python - "$tmp" "$rounds" "$base" "$bench" <<'PY'
 import json, statistics, sys
-tmp, rounds, base = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-def rows(kind):
-    return [json.load(open(f"{tmp}/{kind}_{i}.json"))["rows"] for i in range(1, rounds + 1)]
-b, h = rows("base"), rows("head")
+tmp, rounds, base, bench = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
+docs = {kind: [json.load(open(f"{tmp}/{kind}_{i}.json")) for i in range(1, rounds + 1)] for kind in ("base", "head")}
+if bench == "checkers":
+    bs = [d["chunks_per_sec"] for d in docs["base"]]
+    hs = [d["chunks_per_sec"] for d in docs["head"]]
+    print(f"checkers: baseline {base} {statistics.median(bs):,.0f} chunks/s {[round(v) for v in bs]}; "
+          f"this checkout {statistics.median(hs):,.0f} {[round(v) for v in hs]}; "
+          f"ratio {statistics.median(hs) / statistics.median(bs):.2f}")
+    sys.exit()
+b, h = [d["rows"] for d in docs["base"]], [d["rows"] for d in docs["head"]]
 for j, row in enumerate(b[0]):
     bs = [r[j]["simulations_per_sec"] for r in b]
     hs = [r[j]["simulations_per_sec"] for r in h]
