@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import argparse
+import random
+import shutil
+
 import numpy as np
 import pytest
 from helpers import run_cli
+
+from rllock.files.checkpoint import SHIPPED
 
 
 def _files(tmp_path):
@@ -71,7 +77,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
         (["bench", "success", "--checkpoint", "general"], "name one with --shape and --pieces"),
         (["bench", "transfer", "--checkpoint", "{t}/nothing"], "no such checkpoint"),
         (["bench", "transfer", "--checkpoint", "cube4-k9"], "trained for one task"),
-        (["train", "--resume", "{t}/nothing"], "cannot resume"),
+        (["train", "--resume", "{t}/nothing"], "cannot resume {t}/nothing: no such run directory"),
+        (["train", "--resume", "{t}"], "holds no readable checkpoint"),
         (["generate", "--checkpoint", "{t}/nothing", "--out", "{t}/g"], "no such checkpoint"),
         (["generate", "--checkpoint", "{t}", "--batch", "0", "--out", "{t}/g"], "--batch"),
         (["bench", "selfplay", "--actors", "0"], "at least 1"),
@@ -80,6 +87,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, needle):
 )
 def test_bad_training_and_inference_input_is_one_line_and_exit_2(tmp_path, args, needle):
     args = [a.format(t=tmp_path) for a in args]
+    needle = needle.format(t=tmp_path)
     if args[0] == "train" and "--resume" not in args:
         args += ["--logdir", str(tmp_path / "run")]
     code, _, err = run_cli(*args)
@@ -112,3 +120,106 @@ def test_learning_ratio_and_its_bound_when_the_baseline_finds_nothing():
     assert learning_ratio(30.0, None, 300.0) == (None, 0.1)  # untrained: none in 300 s
     assert learning_ratio(None, 40.0, 200.0) == (None, None)
     assert learning_ratio(None, None, 200.0) == (None, None)
+
+
+def _damaged_checkpoint(folder, damage: str):
+    """A copy of the shipped cube4-k7 checkpoint whose array data files (state/**/d/*) are cut to a third
+    or overwritten with random bytes of the same length."""
+    shutil.copytree(SHIPPED / "cube4-k7", folder)
+    rng = random.Random(0)
+    files = [f for f in (folder / "state").rglob("*") if f.is_file() and f.parent.name == "d"]
+    assert files, "the checkpoint layout changed: no array data files to damage"
+    for f in files:
+        size = f.stat().st_size
+        f.write_bytes(f.read_bytes()[: size // 3] if damage == "truncated" else rng.randbytes(size))
+    return folder
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbled"])
+@pytest.mark.parametrize("command", ["generate", "bench learning"])
+def test_a_damaged_checkpoint_is_one_line(tmp_path, damage, command):
+    # The failed restore used to print tracebacks from orbax's closed event loop after the error line.
+    folder = _damaged_checkpoint(tmp_path / "ckpt", damage)
+    extra = ["--out", str(tmp_path / "out")] if command == "generate" else ["--count", "1"]
+    code, _, err = run_cli(*command.split(), "--checkpoint", str(folder), *extra)
+    assert code == 2 and err.count("\n") == 1, err[:3000]
+    assert err.startswith(f"rllock: error: checkpoint {folder} is corrupted or unreadable: "), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_garbled_metadata_is_one_line(tmp_path):
+    folder = shutil.copytree(SHIPPED / "cube4-k7", tmp_path / "ckpt")
+    (folder / "meta" / "metadata").write_bytes(b"\xe1\x80{")  # not UTF-8
+    code, _, err = run_cli("generate", "--checkpoint", str(folder), "--out", str(tmp_path / "out"))
+    assert code == 2 and err.count("\n") == 1 and "is corrupted or unreadable" in err, err
+
+
+def test_a_checkpoint_for_another_task_is_refused_in_words(tmp_path):
+    code, _, err = run_cli(
+        "generate",
+        "--checkpoint",
+        "cube4-k7",
+        "--shape",
+        "cube5",
+        "--pieces",
+        "13",
+        "--out",
+        str(tmp_path / "o"),
+    )
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.rstrip().endswith(
+        "was made for another task: cube4 (4x4x4) K=7, removal straight; this task is cube5 (5x5x5) K=13, "
+        "removal straight"
+    ), err
+
+
+def test_another_canvas_or_grid_is_named_where_the_words_would_be_equal():
+    from rllock.core.env import make_task
+    from rllock.errors import RLLockError
+    from rllock.files.checkpoint import check_same_task, task_identity
+
+    cube = task_identity(make_task("cube4", 7), 4)
+    with pytest.raises(RLLockError, match=r"K=7, removal straight, on a 4\^3 canvas; this task .* on a 8\^3"):
+        check_same_task(cube, {**cube, "canvas": 8}, SHIPPED)
+    with pytest.raises(RLLockError, match="but another shape of that name and size"):
+        check_same_task(cube, {**cube, "grid_sha256": "0" * 64}, SHIPPED)
+    check_same_task(cube, dict(cube), SHIPPED)  # the same task passes
+
+
+def test_removal_alone_is_checked_against_the_checkpoint(tmp_path):
+    code, _, err = run_cli(
+        "generate", "--checkpoint", "cube4-k7", "--removal", "path", "--out", str(tmp_path / "o")
+    )
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.rstrip().endswith("K=7, removal straight; this task is cube4 (4x4x4) K=7, removal path"), err
+    assert not (tmp_path / "o").exists()
+
+
+def test_removal_alone_names_the_checkpoints_own_task():
+    from orchestration.cli.common import expected_task
+    from rllock.files.checkpoint import check_same_task, open_checkpoint
+
+    meta = open_checkpoint("cube4-k7").metadata
+    named = argparse.Namespace(shape=None, pieces=None, removal="straight", resolution=None)
+    check_same_task(meta.task, expected_task(named, meta), SHIPPED)  # its own mode: accepted
+    assert expected_task(argparse.Namespace(shape=None, pieces=None, removal=None), meta) is None
+    assert expected_task(argparse.Namespace(**{**vars(named), "removal": "path"}), meta)["removal"] == "path"
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "0", "-3"])
+def test_time_limit_must_be_positive_and_finite(tmp_path, value):
+    from orchestration.cli.common import positive_float
+
+    with pytest.raises(argparse.ArgumentTypeError, match="positive finite"):
+        positive_float(value)
+    code, _, err = run_cli(
+        "solve", "--shape", "cube3", "--pieces", "3", f"--time-limit={value}", "--out", str(tmp_path / "o")
+    )
+    assert code == 2 and f"--time-limit: must be a positive finite number, got {value}" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_time_limit_takes_a_positive_number():
+    from orchestration.cli.common import positive_float
+
+    assert positive_float("2.5") == 2.5

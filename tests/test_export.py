@@ -294,3 +294,22 @@ def test_xmpuzzle_refuses_an_invalid_assembly(tmp_path):
     (tmp_path / "bad.puz").write_text("3 1 1\n1 2 3\n")  # a row of three pieces does not interlock
     with pytest.raises(RLLockError, match="not a valid assembly"):
         _run("export", str(tmp_path / "bad.puz"), "--format", "xmpuzzle", "--out", str(tmp_path))
+
+
+def test_export_into_an_earlier_export_replaces_its_pieces(tmp_path, saved, caplog):
+    out = tmp_path / "pieces"
+    out.mkdir()
+    # An earlier 20-piece export in both formats, one with 3-digit names, and files of the user's own.
+    for i in range(1, 21):
+        (out / f"piece_{i:02d}.stl").write_text("solid old\nendsolid old\n")
+    for name in ("piece_100.stl", "piece_01.obj", "notes.txt", "piece_07.stl.bak", "mypiece_09.stl"):
+        (out / name).write_text("keep")
+    with caplog.at_level(logging.INFO, logger="rllock.files.export"):
+        assert _run("export", str(saved), "--format", "stl", "--out", str(out)) == 0
+    names = sorted(p.name for p in out.iterdir())
+    pieces = [f"piece_{i:02d}.stl" for i in range(1, 8)]
+    assert names == sorted([*pieces, "piece_01.obj", "notes.txt", "piece_07.stl.bak", "mypiece_09.stl"])
+    assert all(trimesh.load(out / name).is_watertight for name in pieces)  # the new ones, not the old text
+    assert (out / "piece_01.obj").read_text() == "keep"
+    removed = ", ".join([*(f"piece_{i:02d}.stl" for i in range(8, 21)), "piece_100.stl"])
+    assert f"removed 14 piece files of an earlier export from {out}: {removed}" in caplog.text

@@ -88,7 +88,7 @@ def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and
     task, _ = task_and_episodes
     run = _save(tmp_path, task, Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5)))
     other = ckpt.task_identity(make_task("box:4x4x2", 3), 4)
-    with pytest.raises(RLLockError, match="another task: pieces"):
+    with pytest.raises(RLLockError, match=r"another task: box:4x4x2 \(4x4x2\) K=4, .*; this task is .*K=3"):
         load_policy(run, expect=other)
     step_dir = ckpt.find_step_dir(run)
     broken = tmp_path / "broken"

@@ -99,9 +99,94 @@ def test_verify_command_exit_codes_and_json(data, tmp_path):
 def test_verify_uses_the_removal_mode_an_assembly_json_names(data, tmp_path):
     from rllock.files.assembly import write_assembly
 
-    labels = read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz")  # valid only under path
+    # Valid only under path, and its pieces have n = floor(N/K) voxels each, as assembly.json requires.
+    labels = read_puz_labels(data / "published" / "Cube_Hollow_4x4x4_K7.puz")
     write_assembly(
-        tmp_path, labels, removal="path", shape="cube4", method={"name": "published"}, seed=0, timings={}
+        tmp_path, labels, removal="path", shape="hollow", method={"name": "published"}, seed=0, timings={}
     )
     assert run_cli("verify", str(tmp_path / "assembly.json"))[0] == 0
     assert run_cli("verify", str(tmp_path / "assembly.json"), "--removal", "straight")[0] == 1
+
+
+@pytest.fixture(scope="module")
+def cube4_k7() -> np.ndarray:
+    return next(search(make_task("cube4", 7), seed=0, time_limit=60)).labels
+
+
+def _edited(tmp_path, labels: np.ndarray, edit) -> str:
+    """An assembly.json of `labels` (verified when written) after `edit(doc, grid)` changed it by hand;
+    `grid` is the label grid [x, y, z], written back x fastest."""
+    from rllock.core.shapes import to_xfastest
+    from rllock.files.assembly import write_assembly
+
+    write_assembly(tmp_path / "a", labels, removal="straight", shape="cube4", method={}, seed=0, timings={})
+    path = tmp_path / "a" / "assembly.json"
+    doc = json.loads(path.read_text())
+    grid = labels.copy()
+    edit(doc, grid)
+    doc["labels"] = [int(v) for v in to_xfastest(grid)]
+    path.write_text(json.dumps(doc))
+    return str(path)
+
+
+def _first_voxel(grid: np.ndarray, piece: int) -> tuple[int, ...]:
+    return tuple(int(c) for c in np.argwhere(grid == piece)[0])
+
+
+def test_an_assembly_json_that_no_longer_matches_its_counts_is_refused(tmp_path, cube4_k7):
+    assert run_cli("verify", _edited(tmp_path / "same", cube4_k7, lambda doc, grid: None))[0] == 0
+
+    def zero_one(doc, grid):
+        grid[_first_voxel(grid, 2)] = 0
+
+    code, out, err = run_cli("verify", _edited(tmp_path / "zeroed", cube4_k7, zero_one))
+    assert code == 2 and out == "" and err.count("\n") == 1, err
+    assert "says N = 64, but its labels fill 63 voxels" in err
+
+    def zero_one_and_fix_n(doc, grid):
+        zero_one(doc, grid)
+        doc["N"] = 63  # n stays floor(63/7) = 9, but piece 2 now has 8
+
+    code, _, err = run_cli("verify", _edited(tmp_path / "counted", cube4_k7, zero_one_and_fix_n))
+    assert code == 2 and "piece 2 has 8 voxels, not n = 9" in err, err
+
+    def wrong_n(doc, grid):
+        doc["n"] = 8
+
+    code, _, err = run_cli("verify", _edited(tmp_path / "n", cube4_k7, wrong_n))
+    assert code == 2 and "says n = 8, but floor(N/K) = floor(64/7) = 9" in err, err
+
+
+@pytest.mark.parametrize("value", [99, -1, 8])
+def test_a_label_out_of_range_is_named_with_its_voxel(tmp_path, cube4_k7, value):
+    where = _first_voxel(cube4_k7, 7)
+
+    def relabel(doc, grid):
+        grid[where] = value
+
+    code, _, err = run_cli("verify", _edited(tmp_path, cube4_k7, relabel))
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"label {value} at voxel {where} is not a piece number 1..7" in err, err
+
+
+def test_a_stray_label_in_a_puz_is_named_not_counted_as_missing_pieces(tmp_path, cube4_k7):
+    grid = cube4_k7.copy()
+    where = _first_voxel(grid, 7)
+    grid[where] = 99
+    write_puz(tmp_path / "stray.puz", grid)
+    code, _, err = run_cli("verify", str(tmp_path / "stray.puz"))
+    assert code == 2 and err.strip() == f"rllock: error: label 99 at voxel {where} is not a piece number 1..7"
+
+
+def test_verify_json_answers_bad_input_with_one_json_object(tmp_path):
+    (tmp_path / "bad.json").write_text("{not json")
+    for name, needle in (("bad.json", "malformed assembly file"), ("missing.puz", "no such file")):
+        path = tmp_path / name
+        code, out, err = run_cli("verify", str(path), "--json")
+        assert code == 2 and out.count("\n") == 1, out
+        assert json.loads(out) == {
+            "file": str(path),
+            "valid": None,
+            "error": err.strip().removeprefix("rllock: error: "),
+        }
+        assert needle in json.loads(out)["error"]

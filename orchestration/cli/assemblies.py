@@ -52,8 +52,17 @@ def verified(labels: np.ndarray, metadata: dict, source: str) -> Verdict:
 def cmd_verify(args: argparse.Namespace) -> int:
     from rllock.core.verifier import verify_labels
 
-    labels, meta = read_assembly(args.file)
-    verdict = verify_labels(labels, args.removal or meta.get("removal") or "straight")
+    try:
+        labels, meta = read_assembly(args.file)
+        verdict = verify_labels(labels, args.removal or meta.get("removal") or "straight")
+    except (RLLockError, OSError) as exc:
+        if not args.json:
+            raise
+        # A script reading --json output gets an answer on stdout for bad input too; stderr keeps the line.
+        error = str(exc) if isinstance(exc, RLLockError) else f"{exc.strerror or exc}: {exc.filename or ''}"
+        sys.stdout.write(json.dumps({"file": str(args.file), "valid": None, "error": error}) + "\n")
+        sys.stderr.write(f"rllock: error: {error}\n")
+        return 2
     if args.json:
         sys.stdout.write(json.dumps({"file": str(args.file), **verdict.to_json()}) + "\n")
     elif verdict.valid:
@@ -265,7 +274,10 @@ def _add_outputs(subparsers: argparse._SubParsersAction) -> None:
         f"{PRINT_GAP:g} mm, a printing clearance that also keeps STL files watertight when "
         "voxels of a piece touch only along an edge; --gap 0 gives the exact shape). "
         "xmpuzzle: a BurrTools puzzle (OUT/NAME.xmpuzzle) with the pieces, the shape and this "
-        "assembly with its disassembly as the solution.",
+        "assembly with its disassembly as the solution. An --out folder that holds an earlier "
+        "export gets this one instead: its piece files of the same format that this export does not "
+        "write (piece_07.stl ... of a larger puzzle) are removed and named in the log; other files "
+        "stay.",
     )
     p.add_argument("assembly", help="assembly.json, a folder holding one, or a .puz file")
     p.add_argument("--format", required=True, choices=FORMATS)

@@ -6,6 +6,7 @@ Each flag that more than one command takes is defined here once.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -19,8 +20,9 @@ if TYPE_CHECKING:
 
 def positive_float(text: str) -> float:
     value = float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    # nan compares false with everything, so `value <= 0` alone would let it (and inf) through.
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
     return value
 
 
@@ -162,9 +164,12 @@ def add_checkpoint_task_args(p: argparse.ArgumentParser) -> None:
 
 def expected_task(args: argparse.Namespace, saved: Metadata) -> dict | None:
     """The identity of the task named on the command line (if one was named), to compare with the
-    checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own."""
+    checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own. --removal alone names the
+    checkpoint's own shape and K with that removal mode."""
     if args.shape is None and args.pieces is None:
-        return None
+        if args.removal is None:
+            return None
+        return {**saved.task, "removal": args.removal}
     if args.shape is None or args.pieces is None:
         raise RLLockError("give both --shape and --pieces to check the checkpoint's task, or neither")
     from rllock.core.env import make_task

@@ -36,17 +36,39 @@ class Verdict:
         return asdict(self)
 
 
-def validate_labels(labels: np.ndarray) -> int:
-    """K, after checking that the ids are exactly 1..K with K >= 2."""
-    ids = np.unique(labels[labels != 0])
-    if ids.size == 0:
+def _voxel_of(labels: np.ndarray, value: int) -> tuple[int, ...]:
+    return tuple(int(c) for c in np.argwhere(labels == value)[0])
+
+
+def validate_labels(labels: np.ndarray, pieces: int | None = None) -> int:
+    """K, after checking that the ids are exactly 1..K with K >= 2. `pieces` is K where the assembly's
+    file names it; else K is the largest id."""
+    labels = np.asarray(labels)
+    ids = [int(i) for i in np.unique(labels[labels != 0])]
+    if not ids:
         raise RLLockError("the assembly has no filled voxels")
-    k = int(ids.max())
-    if ids.min() < 1 or ids.size != k:
-        missing = sorted(set(range(1, k + 1)) - {int(i) for i in ids})
-        raise RLLockError(f"piece ids must be 1..K without gaps; missing {missing[:5]}")
+    if pieces is not None:
+        if pieces < 2:
+            raise RLLockError(f"an assembly needs at least 2 pieces, not K = {pieces}")
+        k = pieces
+    else:
+        positive = [i for i in ids if i >= 1]
+        run = 0  # 1..run are all present
+        while run < len(positive) and positive[run] == run + 1:
+            run += 1
+        above = positive[run:]
+        # A value far above the others (99 among 1..11) is a stray label, not 87 missing pieces.
+        k = run if above and len(above) < above[-1] - run - len(above) else max(positive, default=0)
+    stray = [i for i in ids if i < 1 or i > k]
+    if stray:
+        where = tuple(int(c) for c in np.argwhere(labels == stray[0])[0])
+        numbers = f"1..{k}" if k >= 2 else "1..K"
+        raise RLLockError(f"label {stray[0]} at voxel {where} is not a piece number {numbers}")
+    missing = sorted(set(range(1, k + 1)) - set(ids))
+    if missing:
+        raise RLLockError(f"piece ids must be 1..K without gaps (K = {k}); missing {missing[:5]}")
     if k < 2:
-        raise RLLockError("an assembly needs at least 2 pieces")
+        raise RLLockError(f"an assembly needs at least 2 pieces, not K = {k}")
     return k
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from rllock.core.shapes import from_xfastest, read_puz_labels, to_xfastest, write_puz
-from rllock.core.verifier import CHECKER_NAME, CHECKER_VERSION, Verdict, verify_labels
+from rllock.core.verifier import CHECKER_NAME, CHECKER_VERSION, Verdict, validate_labels, verify_labels
 from rllock.errors import RLLockError
 
 FORMAT = "rllock-assembly"
@@ -62,9 +62,37 @@ def read_assembly(path: str | Path) -> tuple[np.ndarray, dict]:
         labels = np.asarray(data["labels"], dtype=np.int64)
         if len(dims) != 3 or min(dims) < 1 or labels.size != dims[0] * dims[1] * dims[2]:
             raise RLLockError(f"malformed assembly file {path}: labels do not match dimensions {dims}")
+        counts = tuple(data[key] for key in ("K", "n", "N"))
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in counts):
+            raise RLLockError(f"malformed assembly file {path}: K, n and N must be integers")
     except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise RLLockError(f"malformed assembly file {path}: {exc}") from None
-    return from_xfastest(labels, dims), data  # type: ignore[arg-type]
+    grid = from_xfastest(labels, dims)  # type: ignore[arg-type]
+    _check_counts(path, grid, *counts)
+    return grid, data
+
+
+def _check_counts(path: Path, labels: np.ndarray, k: int, n: int, total: int) -> None:
+    """An assembly.json's labels against its own K, n and N and the rule that P1..P(K-1) have
+    n = floor(N/K) voxels each: a label changed by hand would otherwise be verified as another assembly."""
+    try:
+        validate_labels(labels, pieces=k)
+    except RLLockError as exc:
+        raise RLLockError(f"assembly file {path}: {exc}") from None
+    filled = int(np.count_nonzero(labels))
+    if filled != total:
+        raise RLLockError(f"assembly file {path} says N = {total}, but its labels fill {filled} voxels")
+    if n != total // k:
+        raise RLLockError(
+            f"assembly file {path} says n = {n}, but floor(N/K) = floor({total}/{k}) = {total // k}"
+        )
+    sizes = np.bincount(labels.ravel(), minlength=k + 1)
+    for piece in range(1, k):
+        if sizes[piece] != n:
+            raise RLLockError(
+                f"assembly file {path}: piece {piece} has {sizes[piece]} voxels, not n = {n} "
+                f"(P1..P(K-1) have n = floor(N/K) voxels each)"
+            )
 
 
 def _publish(staging: Path, out: Path) -> None:

@@ -11,14 +11,18 @@ and reads it once.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
 import datetime
 import json
+import logging
 import os
 import platform
 import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,10 +86,7 @@ class Metadata:
 
     def describe_task(self) -> str:
         """The task in words, for messages and tables."""
-        if self.multitask:
-            return f"tasks {self.task['tasks']}"
-        dims = "x".join(str(d) for d in self.task["dimensions"])
-        return f"{self.task['shape']} ({dims}) K={self.task['pieces']}, removal {self.removal}"
+        return describe_identity(self.task)
 
     @staticmethod
     def of(
@@ -152,6 +153,12 @@ def open_checkpoint(path: str | Path | Checkpoint) -> Checkpoint:
 def run_config(logdir: Path, *, minutes: float, max_learner_steps: int | None = None) -> TrainConfig:
     """The config of the training run in `logdir`, read from its newest readable checkpoint, with
     `minutes` more to train (and a new step limit, when given)."""
+    if not logdir.exists():
+        raise RLLockError(
+            f"cannot resume {logdir}: no such run directory (give the --logdir of a training run)"
+        )
+    if not logdir.is_dir():
+        raise RLLockError(f"cannot resume {logdir}: it is a file, not a run directory")
     for step in saved_steps(logdir / "checkpoints")[::-1]:
         try:
             config = read_metadata(logdir / "checkpoints" / str(step)).config
@@ -262,13 +269,32 @@ def task_from_identity(identity: dict) -> Task:
     return make_task(grid, int(identity["pieces"]), identity["removal"], name=identity["shape"])
 
 
+def describe_identity(identity: dict) -> str:
+    """A task identity (`task_identity`, or a multi-task run's) in words."""
+    if "tasks" in identity:
+        return f"tasks {identity['tasks']}, removal {identity.get('removal')}"
+    dims = "x".join(str(d) for d in identity["dimensions"])
+    return f"{identity['shape']} ({dims}) K={identity['pieces']}, removal {identity['removal']}"
+
+
 def check_same_task(saved: dict, wanted: dict, where: Path) -> None:
-    for key in ("tasks", "grid_sha256", "pieces", "removal", "canvas", "checker_version"):
-        if saved.get(key) != wanted.get(key):
-            raise RLLockError(
-                f"checkpoint {where} was made for another task: {key} is {saved.get(key)!r} there, "
-                f"{wanted.get(key)!r} here (shape {saved.get('shape')!r}, K={saved.get('pieces')})"
-            )
+    """Refuse a checkpoint made for another task than `wanted`, saying both in words."""
+    keys = ("tasks", "grid_sha256", "pieces", "removal", "canvas", "checker_version")
+    differs = [key for key in keys if saved.get(key) != wanted.get(key)]
+    if not differs:
+        return
+    there, here = describe_identity(saved), describe_identity(wanted)
+    if "canvas" in differs:
+        there, here = (
+            f"{there}, on a {saved.get('canvas')}^3 canvas",
+            f"{here}, on a {wanted.get('canvas')}^3 canvas",
+        )
+    if "checker_version" in differs:
+        there = f"{there}, checkers version {saved.get('checker_version')}"
+        here = f"{here}, checkers version {wanted.get('checker_version')}"
+    if there == here:  # only the grid differs: two shapes of the same name and size
+        here = f"{here}, but another shape of that name and size"
+    raise RLLockError(f"checkpoint {where} was made for another task: {there}; this task is {here}")
 
 
 def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
@@ -325,7 +351,7 @@ def find_step_dir(path: str | Path, shipped: Path | None = None) -> Path:
 def read_metadata(step_dir: Path) -> Metadata:
     try:
         doc = json.loads((step_dir / "meta" / "metadata").read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {exc}") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise RLLockError(f"{step_dir} is not an RL-Lock checkpoint")
@@ -334,6 +360,85 @@ def read_metadata(step_dir: Path) -> Metadata:
     except (KeyError, TypeError, ValueError) as exc:
         problem = f"{type(exc).__name__}: {exc}"
         raise RLLockError(f"checkpoint {step_dir} has damaged metadata ({problem})") from None
+
+
+# How long a failed restore waits for its other reads to end before it cancels them.
+_DRAIN_SECONDS = 30.0
+
+
+class _DrainingLoop(asyncio.SelectorEventLoop):
+    """An event loop that, when closed with tasks still running, first lets them end.
+
+    Orbax runs a restore in a fresh loop and closes it as soon as one read fails, while TensorStore
+    goes on with the others: their completions then land on a closed loop ("RuntimeError: Event loop
+    is closed", printed from TensorStore's threads) and their coroutines, collected unfinished, print a
+    traceback each with a TensorStore spec dump. A damaged checkpoint would bury the one error line
+    under hundreds of lines; letting the reads end while the loop is open leaves nothing to print."""
+
+    def close(self) -> None:
+        if not self.is_closed() and not self.is_running():
+            pending = asyncio.all_tasks(self)
+            if pending:
+                _, late = self.run_until_complete(asyncio.wait(pending, timeout=_DRAIN_SECONDS))
+                for task in late:
+                    task.cancel()
+                if late:
+                    self.run_until_complete(asyncio.wait(late, timeout=_DRAIN_SECONDS))
+                for task in pending:
+                    # Retrieved, so asyncio does not log each one as "never retrieved" when it is freed.
+                    if task.done() and not task.cancelled():
+                        task.exception()
+        super().close()
+
+
+class _DrainingPolicy(asyncio.DefaultEventLoopPolicy):
+    def new_event_loop(self) -> asyncio.AbstractEventLoop:
+        return _DrainingLoop()
+
+
+@contextlib.contextmanager
+def _quiet_restore() -> Iterator[None]:
+    """Orbax's loops drain before they close (`_DrainingLoop`), and its warnings about what it cannot
+    read stay unprinted: a restore either succeeds or raises, and the caller reports the error once."""
+    loggers = [logging.getLogger(name) for name in ("absl", "orbax")]
+    levels = [logger.level for logger in loggers]
+    policy = asyncio.get_event_loop_policy()
+    asyncio.set_event_loop_policy(_DrainingPolicy())
+    for logger in loggers:
+        logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        asyncio.set_event_loop_policy(policy)
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+
+
+# What TensorStore adds to its own words: the spec it was opening, each driver it went through, and the
+# database's folder, which the message names already.
+_TENSORSTORE_NOISE = (
+    re.compile(r" \[tensorstore_spec.*$"),
+    re.compile(r'Error opening "\w+" driver: '),
+    re.compile(r' in OCDBT database at local file "[^"]*"'),
+)
+
+
+def _root_cause(exc: BaseException, step_dir: Path) -> str:
+    """The innermost error behind `exc`, in short: orbax wraps TensorStore's own words (such as
+    "DATA_LOSS: Error reading ...") in a message that dumps the whole TensorStore spec."""
+    seen: set[int] = set()
+    while id(exc) not in seen:
+        seen.add(id(exc))
+        inner = exc.__cause__ or exc.__context__
+        if inner is None:
+            break
+        exc = inner
+    text = str(exc).strip()
+    text = text.splitlines()[0] if text else type(exc).__name__
+    for noise in _TENSORSTORE_NOISE:
+        text = noise.sub("", text)
+    text = text.replace(f"{step_dir.absolute()}/", "")
+    return text if len(text) <= 300 else text[:297] + "..."
 
 
 def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any:
@@ -347,14 +452,18 @@ def restore_like(step_dir: Path, template: Any, *, partial: bool = False) -> Any
     )
     path = (step_dir / "state").absolute()
     try:
-        if partial:
-            args = ocp.args.PyTreeRestore(
-                item=abstract,
-                partial_restore=True,
-                restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
-            )
-            return ocp.PyTreeCheckpointer().restore(path, args=args)
-        return ocp.StandardCheckpointer().restore(path, abstract)
+        with _quiet_restore():
+            if partial:
+                args = ocp.args.PyTreeRestore(
+                    item=abstract,
+                    partial_restore=True,
+                    restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+                )
+                with contextlib.closing(ocp.PyTreeCheckpointer()) as checkpointer:
+                    return checkpointer.restore(path, args=args)
+            with contextlib.closing(ocp.StandardCheckpointer()) as standard:
+                return standard.restore(path, abstract)
     except Exception as exc:  # orbax raises many kinds of errors for damaged files
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise RLLockError(f"checkpoint {step_dir} is corrupted or unreadable: {first[:200]}") from None
+        raise RLLockError(
+            f"checkpoint {step_dir} is corrupted or unreadable: {_root_cause(exc, step_dir)}"
+        ) from None

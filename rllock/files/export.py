@@ -7,6 +7,9 @@ is shrunk by gap/2 on each face that borders another piece or the outside, leavi
 neighbouring pieces. The gap defaults to PRINT_GAP = 0.2 mm, a typical FDM printing clearance, which also
 keeps every STL file watertight when a slicer welds its vertices (at gap 0, voxels of one piece that touch
 only along an edge make a non-manifold edge there: see `rllock.core.meshes`). Gap 0 gives the exact shape.
+Exporting into a folder that holds an earlier export replaces that export: piece files of the same format
+that this one does not write (an earlier, larger puzzle's `piece_07.stl` ...) are removed and named in the
+log, so the folder holds exactly this puzzle's pieces; nothing else in the folder is touched.
 
 BurrTools (`.xmpuzzle`, gzip-compressed XML, puzzle format version 2, the brick grid):
   axes          identity: BurrTools' x, y, z are the label grid's x, y, z, and a shape's voxel string
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import gzip
 import logging
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -50,7 +54,8 @@ log = logging.getLogger(__name__)
 def write_meshes(
     labels: np.ndarray, fmt: str, out_dir: str | Path, voxel_size: float = 10.0, gap: float = PRINT_GAP
 ) -> list[Path]:
-    """One mesh file per piece, `piece_NN.<fmt>`, in piece order; returns the paths written."""
+    """One mesh file per piece, `piece_NN.<fmt>`, in piece order; returns the paths written. Earlier
+    `piece_NN.<fmt>` files in `out_dir` that this export does not replace are removed (module docstring)."""
     from rllock.core.meshes import (  # imported here: trimesh is slow to import
         assembly_meshes,
         edge_only_contacts,
@@ -78,7 +83,29 @@ def write_meshes(
         path = out / f"piece_{i:0{width}d}.{fmt}"
         mesh.export(path)
         paths.append(path)
+    _remove_stale_pieces(out, fmt, paths)
     return paths
+
+
+def _remove_stale_pieces(out: Path, fmt: str, written: list[Path]) -> None:
+    """Remove the piece files of an earlier export into `out` that `written` did not replace: left
+    there, a slicer or viewer loading the folder would mix another puzzle's pieces into this one."""
+    pattern = re.compile(rf"piece_[0-9]{{2,}}\.{fmt}")
+    keep = {p.name for p in written}
+    stale = sorted(
+        (p for p in out.iterdir() if pattern.fullmatch(p.name) and p.name not in keep and p.is_file()),
+        key=lambda p: (len(p.name), p.name),  # piece order: piece_100 after piece_20
+    )
+    for path in stale:
+        path.unlink()
+    if stale:
+        log.info(
+            "removed %d piece %s of an earlier export from %s: %s",
+            len(stale),
+            "file" if len(stale) == 1 else "files",
+            out,
+            ", ".join(p.name for p in stale),
+        )
 
 
 def _voxel(grid: np.ndarray, name: str) -> ET.Element:
