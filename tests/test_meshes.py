@@ -63,6 +63,27 @@ def test_disconnected_mesh_keeps_the_largest_part(tmp_path, caplog):
     assert "dropped 8 of 72 voxels" in caplog.text
 
 
+def test_a_mesh_that_falls_apart_is_refused_with_a_resolution_that_keeps_it(tmp_path):
+    # Two cubes joined by a thin bar off their centre line: at resolution 4 no voxel centre lies in it.
+    left, right = trimesh.creation.box(extents=[2, 2, 2]), trimesh.creation.box(extents=[2, 2, 2])
+    right.apply_translation([4, 0, 0])
+    bar = trimesh.creation.box(extents=[2.2, 0.4, 0.4])
+    bar.apply_translation([2, 0.5, 0.5])
+    solid = trimesh.boolean.union([left, bar, right], engine="manifold")
+    solid.export(tmp_path / "dumbbell.stl")
+    with pytest.raises(RLLockError, match=r"falls apart: its largest connected part keeps \d+ of \d+ voxels"):
+        load_shape(str(tmp_path / "dumbbell.stl"), resolution=4)
+    with pytest.raises(RLLockError) as refused:
+        load_shape(str(tmp_path / "dumbbell.stl"), resolution=4)
+    higher = int(str(refused.value).split("--resolution ")[1].split()[0])
+    grid = load_shape(str(tmp_path / "dumbbell.stl"), resolution=higher)  # no error: one part now
+    assert grid.sum() > 0 and higher > 4
+    two = trimesh.util.concatenate([left, right])  # never joined
+    two.export(tmp_path / "two_cubes.stl")
+    with pytest.raises(RLLockError, match="no resolution up to 12 keeps them together"):
+        load_shape(str(tmp_path / "two_cubes.stl"), resolution=6)
+
+
 @pytest.mark.parametrize(
     "make,needle",
     [

@@ -29,7 +29,9 @@ read it, and printed pieces fit together. The functions here default to gap 0, t
 
 Meshes to voxels. A closed mesh is sampled at voxel centres on a grid whose longest side has
 `resolution` voxels, mesh axes kept; a voxel is filled when its centre is inside the solid, tested layer
-by layer against the solid's cross-section at that height. Only the largest 6-connected part is kept.
+by layer against the solid's cross-section at that height. Only the largest 6-connected part is kept,
+with a warning; when that drops more than MAX_DROPPED of the voxels the mesh is refused, naming a higher
+resolution that keeps its parts together where one up to twice the given one does.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ from scipy import ndimage
 from rllock.errors import RLLockError
 
 DEFAULT_RESOLUTION = 8
+# The share of a mesh's voxels that may be dropped (parts that touch the rest only along an edge or not at
+# all) before the shape is too far from the model to search.
+MAX_DROPPED = 0.25
 
 log = logging.getLogger(__name__)
 
@@ -207,12 +212,32 @@ def largest_component(grid: np.ndarray, name: str) -> np.ndarray:
 
 def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray:
     """A closed `.stl`/`.obj` mesh as a boolean grid [x, y, z] (mesh axes kept), at most `resolution`
-    voxels along its longest side, reduced to its largest 6-connected part."""
+    voxels along its longest side, reduced to its largest 6-connected part; refused when that part
+    drops more than MAX_DROPPED of the voxels."""
     resolution = DEFAULT_RESOLUTION if resolution is None else resolution
     if resolution < 1:
         raise RLLockError(f"the resolution must be at least 1 voxel, got {resolution}")
     path = Path(path)
-    grid = _sample_inside(_solid(_load_mesh(path), path), resolution)
+    solid = _solid(_load_mesh(path), path)
+    grid = _sample_inside(solid, resolution)
     if not grid.any():
         raise RLLockError(f"mesh {path} fills no voxel at resolution {resolution}: try a higher resolution")
-    return largest_component(grid, str(path))
+    kept = largest_component(grid, str(path))
+    dropped, total = int(grid.sum() - kept.sum()), int(grid.sum())
+    if dropped > MAX_DROPPED * total:
+        raise RLLockError(
+            f"mesh {path} at resolution {resolution} falls apart: its largest connected part keeps "
+            f"{total - dropped} of {total} voxels; {_resolution_hint(solid, resolution)}"
+        )
+    return kept
+
+
+def _resolution_hint(solid: m3.Manifold, resolution: int) -> str:
+    """The lowest resolution above `resolution` (up to twice it) at which the largest part drops at most
+    MAX_DROPPED of the voxels, as advice."""
+    for higher in range(resolution + 1, 2 * resolution + 1):
+        grid = _sample_inside(solid, higher)
+        parts, count = ndimage.label(grid)
+        if count and np.bincount(parts.ravel())[1:].max() >= (1 - MAX_DROPPED) * grid.sum():
+            return f"--resolution {higher} keeps its parts together"
+    return f"no resolution up to {2 * resolution} keeps them together (the model has separate parts)"
