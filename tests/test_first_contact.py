@@ -127,3 +127,34 @@ def test_a_folder_is_written_whole_or_not_at_all(tmp_path):
     write_assembly(tmp_path / "best", labels, **settings)  # a run's best assembly, replaced whole
     assert sorted(p.name for p in tmp_path.iterdir()) == ["best"]
     assert {p.name for p in (tmp_path / "best").iterdir()} == {"assembly.json", "assembly.puz"}
+
+
+def test_the_search_reports_its_progress_while_it_runs(monkeypatch):
+    from rllock.search import solver
+
+    monkeypatch.setattr(solver, "PROGRESS_EVERY", 0.0)
+    seen: list[tuple[int, int, int]] = []
+    stats = solver.SearchStats()
+    task = make_task("desia-bunny", 30)
+    found = solver.search(
+        task,
+        seed=0,
+        time_limit=2,
+        stats=stats,
+        report=lambda s: seen.append((s.expansions, s.restarts, s.placed)),
+    )
+    assert list(found) == [] and len(seen) > 10
+    assert [e for e, _, _ in seen] == sorted(e for e, _, _ in seen) and seen[-1][0] <= stats.expansions
+    assert [p for _, _, p in seen] == sorted(p for _, _, p in seen) and 0 < stats.placed < 29
+    assert stats.deepest is not None and stats.deepest.placed == stats.placed
+
+
+@pytest.mark.parametrize("command", ["solve", "generate"])
+def test_help_shows_the_defaults(command):
+    from orchestration.cli.main import build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices[command]  # type: ignore[union-attr]
+    text = sub.format_help()
+    for flag, default in (("--count", "1" if command == "solve" else "5"), ("--seed", "0")):
+        assert f"(default {default})" in text.split(flag, 2)[-1].split("--", 1)[0], flag
+    assert "a hard limit (default " in text
