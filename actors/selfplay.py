@@ -15,6 +15,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import numpy as np
@@ -167,17 +168,25 @@ class SelfPlayWorker:
 
 @ray.remote
 class SelfPlayActor:
-    """Plays batches with the latest published weights and pushes them into the replay buffer."""
+    """Plays batches with the latest published weights and pushes them into the replay buffer. Its
+    constructor takes only the seed: what it plays comes with every call (`run`), so that a process Ray
+    restarts needs nothing kept from the first one's construction."""
 
-    def __init__(self, spec: PlaySpec, seed: int, buffer):
-        self.worker = SelfPlayWorker(spec, seed)
-        self.buffer = buffer
+    def __init__(self, seed: int):
+        self.seed = seed
+        self.worker: SelfPlayWorker | None = None
+        self.buffer: Any = None  # the replay buffer actor's handle (Ray types its methods as Never)
 
     def pid(self) -> int:
         return os.getpid()
 
-    def run(self, weights: list, version: int) -> PlayStats:
-        """`weights` is [ObjectRef] so that Ray does not fetch it unless the version changed."""
+    def run(self, setup: list, weights: list, version: int) -> PlayStats:
+        """`setup` is [ObjectRef of (PlaySpec, replay buffer handle)] and `weights` [ObjectRef of the
+        parameters]: lists, so that Ray fetches them only when this process lacks them (its first call,
+        or a new weights version)."""
+        if self.worker is None:
+            spec, self.buffer = ray.get(setup[0])
+            self.worker = SelfPlayWorker(spec, self.seed)
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()

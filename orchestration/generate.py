@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -42,8 +43,10 @@ def generate_on_ray(
     out: Path | None = None,
     picture: PictureWriter | None = None,
     progress: bool = True,
+    stop: Callable[[], bool] = lambda: False,
 ) -> GenerateResult:
-    """Like `rllock.search.inference.generate`, with rounds played by `actors` Ray actors (one core each)."""
+    """Like `rllock.search.inference.generate`, with rounds played by `actors` Ray actors (one core each);
+    after `stop()` no round is handed out and those under way are dropped."""
     started = start_ray(address)
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))
@@ -59,12 +62,12 @@ def generate_on_ray(
         )
         inflight = {a.play.remote(seed, r): a for r, a in enumerate(pool)}
         next_round = len(pool)
-        while inflight and not collector.done:
+        while inflight and not collector.done and not stop():
             ready, _ = ray.wait(list(inflight), num_returns=1)
             actor = inflight.pop(ready[0])
             episodes, seconds = ray.get(ready[0])
             collector.take(episodes, seconds)
-            if not collector.done and time.perf_counter() - start < time_limit:
+            if not collector.done and time.perf_counter() - start < time_limit and not stop():
                 inflight[actor.play.remote(seed, next_round)] = actor
                 next_round += 1
         for actor in pool:  # rounds still under way are not needed

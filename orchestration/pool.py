@@ -24,13 +24,29 @@ def largest_node_cpus() -> float:
     return max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n.get("Alive")), default=1.0)
 
 
+class _DropDefaultTokenNotice(logging.Filter):
+    """Drops Ray's notice that a new local instance uses token authentication: Ray's default, the safe
+    choice, and nothing to act on. Ray's other authentication warnings (such as a cluster joined without
+    it) pass."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
+
+
+_TOKEN_LOGGER = "ray._private.authentication.authentication_token_setup"
+
+
 def start_ray(address: str | None) -> bool:
-    """Connect to Ray; True when this process started the instance (and so must shut it down)."""
+    """Connect to Ray; True when this process started the instance (and so must shut it down). Ray
+    starts its processes with fork(), so call this before JAX starts its threads (the first JAX array)."""
     if ray.is_initialized():
         return False
     if address:
         ray.init(address=address, logging_level=logging.WARNING)
     else:
+        notices = logging.getLogger(_TOKEN_LOGGER)
+        if not any(isinstance(f, _DropDefaultTokenNotice) for f in notices.filters):
+            notices.addFilter(_DropDefaultTokenNotice())
         ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING)
     return True
 
@@ -79,7 +95,12 @@ def plan_layout(
 
 class ActorPool:
     """Self-play actors, each with one batch in flight. A dead actor process is restarted by Ray and its
-    call retried; the pool notices the new process and logs it. An actor that fails for good is dropped."""
+    call retried; the pool notices the new process and logs it. An actor that fails for good is dropped.
+
+    What an actor plays (the spec and the replay buffer's handle) is put in Ray's object store once and
+    travels by reference with every call, not in the constructor: Ray does not keep an actor's
+    constructor arguments alive for its restarts (ray-project/ray#53727), while a retried call brings
+    its own arguments."""
 
     def __init__(
         self,
@@ -98,11 +119,10 @@ class ActorPool:
             max_task_retries=-1,
             runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
         )
+        self.setup = [ray.put((PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), buffer))]
         # mypy skips class decorators: @ray.remote made SelfPlayActor an ActorClass, which has .options.
         self.actors = [
-            SelfPlayActor.options(**options).remote(  # type: ignore[attr-defined]
-                PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), seed + i, buffer
-            )
+            SelfPlayActor.options(**options).remote(seed + i)  # type: ignore[attr-defined]
             for i in range(layout.actors)
         ]
         try:
@@ -117,7 +137,7 @@ class ActorPool:
         self.inflight: dict = {}
 
     def submit(self, actor, weights: list, version: int) -> None:
-        self.inflight[actor.run.remote(weights, version)] = (actor, version)
+        self.inflight[actor.run.remote(self.setup, weights, version)] = (actor, version)
 
     def submit_all(self, weights: list, version: int) -> None:
         for actor in self.actors:
@@ -146,8 +166,16 @@ class ActorPool:
     def alive(self) -> bool:
         return bool(self.inflight)
 
-    def shutdown(self) -> None:
-        """Stop every actor now; batches in flight are dropped."""
+    def shutdown(self, settle_s: float = 10.0) -> None:
+        """Stop every actor now; batches in flight are dropped. They are cancelled before their actors
+        are killed: otherwise Ray counts each as a failed call to retry, and logs it."""
+        calls = list(self.inflight)
+        for ref in calls:
+            ray.cancel(ref)
         for actor in self.actors:
             ray.kill(actor)
+        # ray.kill returns before the actors are gone: wait for the cancelled calls to end, so that a
+        # ray.shutdown right after does not race their endings.
+        if calls:
+            ray.wait(calls, num_returns=len(calls), timeout=settle_s)
         self.inflight.clear()

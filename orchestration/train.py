@@ -42,6 +42,7 @@ from orchestration.pool import ActorPool, largest_node_cpus, plan_layout, start_
 from orchestration.recorder import Counters, Recorder, best_rank
 from rllock.config import TrainConfig
 from rllock.core.env import Task, compact_dtypes, make_task
+from rllock.core.feasibility import check_feasible
 from rllock.core.tasks import TaskSet, parse_tasks
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
@@ -69,14 +70,16 @@ def _restore_latest(logdir: Path, learner: Learner) -> ckpt.Metadata:
 
 def _setup(
     config: TrainConfig, *, resume: bool = False
-) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, dict | None]:
+) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, ckpt.Checkpoint | None]:
     """(the config with a concrete network, the task or the task set, what the run is for, and the
-    parameters to start from when --init names a checkpoint). A resumed run's saved config already
-    holds the --init checkpoint's network settings, so that checkpoint is not read again."""
+    checkpoint to start from when --init names one, its parameters not read yet: no JAX array is made
+    here). A resumed run's saved config already holds the --init checkpoint's network settings, so that
+    checkpoint is not read again."""
     init = None
     net = config.net
     if config.init is not None and not resume:
-        _, net, init = load_network(config.init)
+        init = ckpt.open_checkpoint(config.init)
+        net = init.metadata.config.net
         if config.net.canvas is not None:
             # The U-Net's weights do not depend on the canvas side, so a generalist trained on a large
             # canvas can be fine-tuned on the smallest one that fits the task, where search is cheaper.
@@ -87,6 +90,7 @@ def _setup(
         return dataclasses.replace(config, net=net), None, tasks, tasks.identity(), init
     assert config.shape is not None and config.pieces is not None
     task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
+    check_feasible(task)
     canvas_of = (
         None if init is None or config.net.canvas is not None else f"the --init checkpoint {config.init}"
     )
@@ -113,21 +117,40 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     config.validate()
     config, task, tasks, identity, init = _setup(config, resume=resume)
     logdir = Path(config.logdir)
+    if not resume and ckpt.saved_steps(logdir / "checkpoints"):
+        raise RLLockError(
+            f"{logdir} already holds a training run; resume it with --resume {logdir} "
+            f"or choose another --logdir"
+        )
+    # Ray starts its processes with fork() (and Python code in the child): after JAX has started its
+    # threads, with the learner's first array, that can deadlock. So Ray starts first.
+    started_ray = start_ray(config.address)
+    try:
+        return _train(config, task, tasks, identity, init, resume, began)
+    finally:
+        if started_ray:
+            ray.shutdown()
+
+
+def _train(
+    config: TrainConfig,
+    task: Task | None,
+    tasks: TaskSet | None,
+    identity: dict,
+    init: ckpt.Checkpoint | None,
+    resume: bool,
+    began: float,
+) -> dict:
+    logdir = Path(config.logdir)
     learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
     counters, last_score = Counters(), None
     sessions: list[dict] = []
     if resume:
         counters, last_score, sessions = _resume(logdir, learner, identity)
-    elif ckpt.saved_steps(logdir / "checkpoints"):
-        raise RLLockError(
-            f"{logdir} already holds a training run; resume it with --resume {logdir} "
-            f"or choose another --logdir"
-        )
     elif init is not None:
-        learner.start_from(init)
+        learner.start_from(load_network(init)[2])
         log.info("starting from the network of %s", config.init)
     recorder = Recorder(logdir, config, task or identity, learner.step, resume, sessions)
-    started_ray = start_ray(config.address)
     run = _Run(config, task, tasks, learner, recorder, counters, last_score, began)
     previous = signal.signal(signal.SIGINT, run.request_stop)
     try:
@@ -135,8 +158,6 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     finally:
         signal.signal(signal.SIGINT, previous)
         recorder.close()
-        if started_ray:
-            ray.shutdown()
         if run.interrupted:
             log.warning(
                 "stopped by Ctrl-C at learner step %d; checkpoint saved. Resume with: "

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: installs what it needs, trains RL-Lock for 2 minutes on a 6-piece 4x4x4 cube (local Ray,
 # self-play actors, JAX learner), generates an assembly from the trained checkpoint, verifies it, and
-# leaves it with its picture under out/demo/.
+# leaves it with its picture under out/demo/. It ends with one next step: the TensorBoard command.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
@@ -11,4 +11,4 @@ rm -rf out/demo-run out/demo
 .venv/bin/rllock generate --checkpoint out/demo-run --count 1 --batch 16 --time-limit 300 --out out/demo
 .venv/bin/rllock verify out/demo/assembly_001/assembly.json
 echo "assembly: out/demo/assembly_001/assembly.json (.puz beside it); picture: out/demo/assembly_001/assembly.png"
-echo "training curves: .venv/bin/tensorboard --logdir out/demo-run   (then open http://localhost:6006)"
+echo "next: watch the training curves with .venv/bin/tensorboard --logdir out/demo-run (then open http://localhost:6006)"

@@ -80,5 +80,11 @@ def test_an_impossible_task_is_one_line_and_exit_2_at_once():
     assert "single voxels" in err and "K <= 32" in err
     code, _, err = run_cli("solve", "--shape", "box:6x5x1", "--pieces", "5", "--out", "/nonexistent/never")
     assert code == 2 and "one voxel thick along z" in err, err
+    code, _, err = run_cli("train", "--shape", "box:6x5x1", "--pieces", "5", "--logdir", "/nonexistent/never")
+    assert code == 2 and "one voxel thick along z" in err and len(err.strip().splitlines()) == 1, err
+    code, _, err = run_cli(
+        "generate", "--checkpoint", "general", "--shape", "cube4", "--pieces", "64", "--out", "x"
+    )
+    assert code == 2 and "single voxels" in err, err
     with pytest.raises(RLLockError, match="one voxel thick along x"):
         solve(make_task("box:1x4x4", 3), time_limit=60)

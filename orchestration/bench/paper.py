@@ -7,6 +7,11 @@ assemblies found. Each network arm includes compiling its own search, and the tr
 checkpoint; what any arm would pay once per process (the sampler's compiled code, JAX's start) is paid
 before the first arm, so that running first costs no arm anything. The paper's figures (Table 1, RTX 5090
 workstation) stand beside them.
+
+Each network arm also says how it started (`Arm.cache`): cold when it compiled programs that JAX's
+persistent cache (`rllock.process.setup_jax_cache`) did not hold yet, and so wrote them there; warm when it
+wrote none; off without the cache. The tree search itself calls back to the host, which JAX never caches,
+so an MCTS arm compiles it either way.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from rllock.config import MCTSConfig, NetConfig
 from rllock.core.env import Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
 from rllock.files.checkpoint import shipped_names
+from rllock.process import jax_cache_entries
 from rllock.search.inference import Policy, generate, load_policy, untrained_like
 from rllock.search.network import fit_canvas, init_params
 from rllock.search.solver import search
@@ -71,6 +77,7 @@ class Arm:
     valid: int
     episodes: int | None  # None for the search solver
     seconds: float
+    cache: str | None = None  # network arms: "cold", "warm" or "off" (see the module's docstring)
 
     @property
     def time_per_valid_s(self) -> float | None:
@@ -116,12 +123,30 @@ def policy_arm(
     load: Callable[[], Policy], *, count: int, batch: int, time_limit: float, seed: int
 ) -> tuple[Arm, Policy]:
     """The protocol with the policy `load` gives, its loading and its search's compiling timed with it."""
+    before = jax_cache_entries()
     t0 = time.perf_counter()
     policy = load()
     r = generate(policy, count=count, batch=batch, time_limit=time_limit, seed=seed, progress=False)
-    arm = Arm(r.valid, r.episodes, time.perf_counter() - t0)
-    log.info("%s: %d valid in %.1f s", policy.source, arm.valid, arm.seconds)
+    seconds = time.perf_counter() - t0
+    after = jax_cache_entries()
+    arm = Arm(r.valid, r.episodes, seconds, cache_start(before, after))
+    log.info(
+        "%s: %d valid in %.1f s (%s start: %s)",
+        policy.source,
+        arm.valid,
+        arm.seconds,
+        arm.cache,
+        "no persistent cache" if after is None else f"{after - (before or 0)} programs added to the cache",
+    )
     return arm, policy
+
+
+def cache_start(before: int | None, after: int | None) -> str:
+    """How an arm started, from the programs JAX's persistent cache held before and after it: cold when
+    it added any, warm when it added none, off without the cache."""
+    if before is None or after is None:
+        return "off"
+    return "cold" if after > before else "warm"
 
 
 def solver_arm(task: Task, *, count: int, time_limit: float, seed: int) -> Arm:
@@ -166,6 +191,7 @@ def arm_json(a: Arm | None) -> dict | None:
         "episodes": a.episodes,
         "seconds": round(a.seconds, 2),
         "time_per_valid_s": a.time_per_valid_s,
+        "cache": a.cache,
     }
 
 
@@ -194,6 +220,11 @@ def row_json(row: PaperRow) -> dict:
     }
 
 
+def starts(row: PaperRow) -> str:
+    """The table's start-up cell: how the trained and the untrained arm started."""
+    return f"{row.trained.cache if row.trained else '-'} / {row.untrained.cache}"
+
+
 def protocol_note(count: int, batch: int, time_limit: float) -> str:
     """What a table's protocol was, for its caption."""
     return f"{count} wanted, batches of {batch}, {time_limit:.0f} s limit per arm"
@@ -212,14 +243,16 @@ def format_paper_table(rows: list[PaperRow], protocol: dict, command: str) -> st
         f"    {command}",
         "",
         f"Seconds per valid assembly (valid found in brackets; {protocol_note(**protocol)}). Trained: the "
-        "shipped checkpoint, load and compile included.",
+        "shipped checkpoint, load and compile included. Start (trained / untrained): cold, the arm compiled "
+        "programs JAX's persistent cache did not hold; warm, the cache held them; off, no cache. The tree "
+        "search is compiled either way (JAX does not cache a program with host callbacks).",
         "",
-        "| task | trained | untrained | search solver | paper RL-Lock | paper DESIA |",
-        "|---|---|---|---|---|---|",
+        "| task | trained | untrained | search solver | start | paper RL-Lock | paper DESIA |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r.task.name} | {arm(r.trained)} | {arm(r.untrained)} | {arm(r.solver)} | "
+            f"| {r.task.name} | {arm(r.trained)} | {arm(r.untrained)} | {arm(r.solver)} | {starts(r)} | "
             f"{paper(r.task, r.task.paper_rllock_s)} | {paper(r.task, r.task.paper_desia_s)} |"
         )
     return "\n".join(lines) + "\n"

@@ -12,6 +12,7 @@ import sys
 from orchestration.bench import commands as bench_commands
 from orchestration.cli import assemblies, training
 from rllock.errors import RLLockError
+from rllock.process import setup_jax_cache
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     # A learner that sees a GPU takes at most this share of its memory (JAX preallocates 75% otherwise);
     # set the variable yourself to change it. JAX is imported later, by the commands that need it.
     os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
+    setup_jax_cache()  # compiled programs kept across processes, per user ($RLLOCK_JAX_CACHE)
     try:
         if getattr(args, "count", 1) < 1:
             raise RLLockError(f"--count must be at least 1, got {args.count}")

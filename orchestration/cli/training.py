@@ -60,8 +60,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
         f"{result['seconds']:.0f} s; last validation {last}, best "
         f"{'none yet' if best < 0 else f'{100 * best:.1f}%'}\n"
-        f"checkpoints: {result['logdir']}/best (best validated) and {result['logdir']}/checkpoints (latest)\n"
-        f"watch it: tensorboard --logdir {result['logdir']}\n"
+        f"checkpoints: {result['logdir']}/best (best validated) and {result['logdir']}/checkpoints (latest), "
+        f"TensorBoard events beside them\n"
     )
     return 0
 
@@ -73,18 +73,31 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise RLLockError(f"--actors must be >= 0, got {args.actors}")
     if args.address and not args.actors:
         raise RLLockError("--address needs --actors N: generation joins a Ray cluster only with actors")
-    policy = load_for(args)
-    check_feasible(policy.task)
-    out = fresh_out(args.out)
+    started_ray = False
+    if args.actors:
+        # Ray starts its processes with fork(): before JAX starts its threads, with the policy's arrays.
+        ray_on_loopback_unless(args.address)
+        from orchestration.pool import start_ray
+
+        started_ray = start_ray(args.address)
     try:
-        with graceful_stop() as stop:
-            result = _generate_into(args, policy, out, stop)
-            stopped = stop()
-    except (KeyboardInterrupt, SystemError) as exc:
-        if not is_interrupt(exc):
-            raise
-        sys.stdout.write(kept("generate", len(list(out.glob("assembly_*"))), out))
-        return INTERRUPTED
+        policy = load_for(args)
+        check_feasible(policy.task)
+        out = fresh_out(args.out)
+        try:
+            with graceful_stop() as stop:
+                result = _generate_into(args, policy, out, stop)
+                stopped = stop()
+        except (KeyboardInterrupt, SystemError) as exc:
+            if not is_interrupt(exc):
+                raise
+            sys.stdout.write(kept("generate", len(list(out.glob("assembly_*"))), out))
+            return INTERRUPTED
+    finally:
+        if started_ray:
+            import ray
+
+            ray.shutdown()
     task = policy.task
     if stopped:
         sys.stdout.write(kept("generate", result.valid, out))
@@ -117,10 +130,9 @@ def _generate_into(args: argparse.Namespace, policy, out: Path, stop):
         picture=picture_writer(),
     )
     if args.actors:
-        ray_on_loopback_unless(args.address)
         from orchestration.generate import generate_on_ray
 
-        return generate_on_ray(policy, actors=args.actors, address=args.address, **settings)
+        return generate_on_ray(policy, actors=args.actors, address=args.address, stop=stop, **settings)
     from rllock.search.inference import generate
 
     return generate(policy, stop=stop, **settings)

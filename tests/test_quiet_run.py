@@ -1,0 +1,47 @@
+"""A successful training run is quiet: stderr holds the trainer's own INFO lines and nothing else; no
+warnings from Ray or JAX that the run is fine without."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+from helpers import tiny_flags
+
+pytestmark = pytest.mark.slow
+
+# What a successful run printed before: Ray retrying the calls of the actors it was told to kill, with a
+# raw colour code; Ray doubting the actors' restarts; JAX's warning of a fork after its threads started;
+# Ray's notice that it uses token authentication, its default.
+NOISE = (
+    "killed by `ray.kill`",
+    "(raylet)",
+    "\x1b[",
+    "core_worker.cc",
+    "constructor arguments in the object store",
+    "os.fork() was called",
+    "RuntimeWarning",
+    "Token authentication",
+)
+OUR_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ INFO (orchestration|learner|actors|rllock)\.")
+
+
+def test_a_short_training_run_prints_only_its_own_lines(tmp_path):
+    logdir = tmp_path / "run"
+    # Ends on its step limit with a self-play batch in flight, which the shutdown must drop quietly.
+    proc = subprocess.run(
+        [sys.executable, "-m", "orchestration.cli", "train", *tiny_flags(), "--minutes", "1"]
+        + ["--max-learner-steps", "5", "--logdir", str(logdir)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("train: 5 learner steps")
+    for needle in NOISE:
+        assert needle not in proc.stderr, f"{needle!r} in:\n{proc.stderr}"
+    lines = proc.stderr.strip().splitlines()
+    assert lines and all(OUR_LINE.match(line) for line in lines), proc.stderr
+    assert "tensorboard" not in proc.stdout  # the one next step is the demo's last line, not one per command
