@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from orchestration.cli.common import (
@@ -73,50 +75,59 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise RLLockError(f"--actors must be >= 0, got {args.actors}")
     if args.address and not args.actors:
         raise RLLockError("--address needs --actors N: generation joins a Ray cluster only with actors")
-    started_ray = False
-    if args.actors:
-        # Ray starts its processes with fork(): before JAX starts its threads, with the policy's arrays.
-        ray_on_loopback_unless(args.address)
-        from orchestration.pool import start_ray
-
-        started_ray = start_ray(args.address)
-    try:
+    with _ray_first(args):
         policy = load_for(args)
         check_feasible(policy.task)
         out = fresh_out(args.out)
         try:
             with graceful_stop() as stop:
                 result = _generate_into(args, policy, out, stop)
-                stopped = stop()
         except (KeyboardInterrupt, SystemError) as exc:
             if not is_interrupt(exc):
                 raise
             sys.stdout.write(kept("generate", len(list(out.glob("assembly_*"))), out))
             return INTERRUPTED
-    finally:
-        if started_ray:
-            import ray
-
-            ray.shutdown()
-    task = policy.task
-    if stopped:
+    if stop():
         sys.stdout.write(kept("generate", result.valid, out))
         return INTERRUPTED
+    sys.stdout.write(_generate_summary(args, policy.task, result))
+    return 0 if result.valid else 1
+
+
+@contextmanager
+def _ray_first(args: argparse.Namespace) -> Iterator[None]:
+    """With --actors, Ray for the rounds, started before anything else: it starts its processes with
+    fork(), which must come before JAX starts its threads (with the policy's arrays)."""
+    if not args.actors:
+        yield
+        return
+    ray_on_loopback_unless(args.address)
+    import ray
+
+    from orchestration.pool import start_ray
+
+    started = start_ray(args.address)
+    try:
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _generate_summary(args: argparse.Namespace, task, result) -> str:
     if result.valid == 0:
         more = f"more time (--time-limit {2 * args.time_limit:g}) or more simulations (--simulations)"
-        sys.stdout.write(
+        return (
             f"generate: no valid assembly of {task.shape_name} K={task.pieces} in {result.episodes} "
             f"episodes ({result.seconds:.1f} s)\n"
             f"  best: {result.best_placed} of {task.pieces - 1} pieces placed\n"
             f"  {advice(task, fits_general=False, more=more)}\n"
         )
-        return 1
-    sys.stdout.write(
+    return (
         f"generate: {result.valid} valid {assemblies_word(result.valid)} of {task.shape_name} "
         f"K={task.pieces} from {result.episodes} episodes in {result.seconds:.1f} s: "
         f"{result.time_per_valid_s:.2f} s per valid assembly -> {args.out}\n"
     )
-    return 0
 
 
 def _generate_into(args: argparse.Namespace, policy, out: Path, stop):
