@@ -44,7 +44,7 @@ from rllock.files.assembly import read_assembly
 from rllock.files.checkpoint import find_step_dir, read_metadata
 from rllock.search import pretrained
 from rllock.search.canvas import augment_canvas, canvas_episode
-from rllock.search.inference import load_policy, with_simulations
+from rllock.search.inference import load_network, load_policy, with_simulations
 from rllock.search.network import (
     TASK_SCALE,
     canvas_index,
@@ -306,7 +306,7 @@ def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
     assert task is not None and tasks is None and identity["pieces"] == 4
     assert config.net.task_planes and config.net.canvas == 4 and config.net.features == (4, 8)
     learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
-    learner.start_from(init)
+    learner.start_from(load_network(init)[2])  # _setup opens the checkpoint; its weights load later
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
     assert learner.step == 0
@@ -322,7 +322,7 @@ def test_init_fine_tunes_a_generalist_on_a_smaller_canvas(tmp_path):
     assert task is not None and config.net.canvas == identity["canvas"] == 4
     assert config.net.features == (4, 8) and config.net.task_planes
     learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
-    learner.start_from(init)
+    learner.start_from(load_network(init)[2])  # _setup opens the checkpoint; its weights load later
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
     assert _setup(dataclasses.replace(small, net=NetConfig()))[0].net.canvas == 6
