@@ -97,3 +97,24 @@ def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
     for a, b in zip(together, apart):
         np.testing.assert_array_equal(a.labels, b.labels)
         np.testing.assert_allclose(a.pi, b.pi)
+
+
+def test_groups_share_one_compiled_search_and_play_as_if_each_had_its_own():
+    from rllock.search.mcts import Searcher
+    from rllock.search.network import PolicyValueNet
+
+    task = make_task("box:4x4x2", 4)
+    net = NetConfig(canvas=4, features=(4, 8))
+    shared = searchers(net, SMALL, ChunkStore, task, episodes=6, groups=2)
+    assert shared[0].compiled is shared[1].compiled and shared[0].slot != shared[1].slot
+    alone = [Searcher(PolicyValueNet(net), SMALL, ChunkStore, task, 3) for _ in range(2)]
+    assert alone[0].compiled is not alone[1].compiled
+    params = init_params(net, jax.random.PRNGKey(1))
+    key = jax.random.PRNGKey(2)
+    together = play_groups(shared, params, task, key, seed=5)  # both groups in threads, at once
+    apart = play_groups(alone, params, task, key, seed=5)
+    assert len(together) == len(apart) == 6
+    for a, b in zip(together, apart):
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_array_equal(a.actions, b.actions)
+        np.testing.assert_allclose(a.pi, b.pi)

@@ -15,9 +15,11 @@ untrained network then tells a live child from a dead end one level earlier.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -131,9 +133,11 @@ def _expansion_shapes(
     )
 
 
-class Searcher:
-    """A compiled batched search for one task and action space (the network's canvas, M, n); `play`
-    gives it a fresh store of kind `space` per batch."""
+class CompiledSearch:
+    """One compiled batched search (the network's canvas, M, n, the batch size), shared by every
+    `Searcher` of that shape: each lockstep group of a process plays through the same program, so it is
+    compiled once, not once per group. The host callback finds the calling searcher's node store by the
+    slot it passes in (searchers run in threads of their own, the callback on XLA's)."""
 
     def __init__(
         self, net: PolicyValueNet, config: MCTSConfig, space: type[NodeStore], task: Task, batch: int
@@ -145,25 +149,43 @@ class Searcher:
         self.space = space
         self.canvas = net.config.canvas
         self.batch = batch
-        self.store: NodeStore | None = None
+        self.stores: dict[int, NodeStore] = {}
         self._shapes = _expansion_shapes(
             batch, space.action_shape(task, config), self.canvas, planes_of(net.config)
         )
-        self._search = jax.jit(self._tree_search)
+        self._jitted = jax.jit(self._tree_search)
+        self._compiled: Any = None
+        self._lock = threading.Lock()
+        self._slots = 0
+
+    def new_slot(self) -> int:
+        """A slot for one more searcher's node store."""
+        with self._lock:
+            self._slots += 1
+            return self._slots - 1
+
+    def run(self, slot: int, params, key, roots, planes, chunks, valid):
+        """The search for the searcher in `slot`; compiled ahead of time on the first call, under a lock,
+        so that groups starting together do not compile it each."""
+        args = ((params, jnp.int32(slot)), key, roots, planes, chunks, valid)
+        with self._lock:
+            if self._compiled is None:
+                self._compiled = self._jitted.lower(*args).compile()
+        return self._compiled(*args)
 
     def _evaluate(self, params, planes, chunks, valid):
         voxel_logits, value = self.net.apply({"params": params}, planes)
         return chunk_logits(voxel_logits, chunks, valid), value
 
-    def _host_expand(self, nodes, actions):
-        assert self.store is not None
-        return expand_rows(self.store, np.asarray(nodes), np.asarray(actions))
+    def _host_expand(self, slot, nodes, actions):
+        return expand_rows(self.stores[int(slot)], np.asarray(nodes), np.asarray(actions))
 
-    def _recurrent(self, params, rng_key, action, embedding):
+    def _recurrent(self, params_slot, rng_key, action, embedding):
         """mctx's recurrent function: the leaves are expanded on the host, then scored in one call."""
         del rng_key
+        params, slot = params_slot
         kids, reward, discount, floor, cap, planes, chunks, valid = io_callback(
-            self._host_expand, self._shapes, embedding, action
+            self._host_expand, self._shapes, slot, embedding, action
         )
         logits, value = self._evaluate(params, planes, chunks, valid)
         out = mctx.RecurrentFnOutput(
@@ -174,11 +196,11 @@ class Searcher:
         )
         return out, kids
 
-    def _tree_search(self, params, key, roots, planes, chunks, valid):
-        logits, value = self._evaluate(params, planes, chunks, valid)
+    def _tree_search(self, params_slot, key, roots, planes, chunks, valid):
+        logits, value = self._evaluate(params_slot[0], planes, chunks, valid)
         root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
         out = mctx.gumbel_muzero_policy(
-            params,
+            params_slot,
             key,
             root,
             self._recurrent,
@@ -189,6 +211,25 @@ class Searcher:
             gumbel_scale=self.config.gumbel_scale,
         )
         return out.action, out.action_weights, value
+
+
+class Searcher:
+    """A batched search for one task and action space, through a `CompiledSearch` of its shape (its own,
+    or one shared with other searchers); `play` gives it a fresh store of kind `space` per batch."""
+
+    def __init__(
+        self,
+        net: PolicyValueNet,
+        config: MCTSConfig,
+        space: type[NodeStore],
+        task: Task,
+        batch: int,
+        compiled: CompiledSearch | None = None,
+    ):
+        self.compiled = CompiledSearch(net, config, space, task, batch) if compiled is None else compiled
+        self.net, self.config, self.space = net, config, space
+        self.canvas, self.batch = self.compiled.canvas, batch
+        self.slot = self.compiled.new_slot()
 
     def play(
         self,
@@ -214,13 +255,13 @@ class Searcher:
 
     def search(self, params, key: jax.Array, store: NodeStore, roots: np.ndarray):
         """(actions [B], search policy pi [B, M], root values [B]) for the root nodes `roots`."""
-        self.store = store
+        self.compiled.stores[self.slot] = store
         start, before = time.perf_counter(), store.times.sampling + store.times.host
         planes, chunks, valid = node_features(store, roots)
         # A finished episode's row still runs (fixed batch shape); one valid dummy action keeps it finite.
         valid[~valid.any(axis=1), 0] = True
-        action, weights, value = self._search(
-            params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid
+        action, weights, value = self.compiled.run(
+            self.slot, params, key, jnp.asarray(roots, jnp.int32), planes, chunks, valid
         )
         action, weights, value = np.asarray(action), np.asarray(weights), np.asarray(value)
         store.times.network += (
@@ -294,6 +335,10 @@ def searchers(
     net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, episodes: int, groups: int
 ) -> list[Searcher]:
     """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
-    return [
-        Searcher(PolicyValueNet(net), config, space, task, size) for size in group_sizes(episodes, groups)
-    ]
+    shared: dict[int, CompiledSearch] = {}
+    found = []
+    for size in group_sizes(episodes, groups):
+        if size not in shared:
+            shared[size] = CompiledSearch(PolicyValueNet(net), config, space, task, size)
+        found.append(Searcher(shared[size].net, config, space, task, size, shared[size]))
+    return found
