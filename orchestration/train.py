@@ -152,19 +152,25 @@ def _train(
         log.info("starting from the network of %s", config.init)
     recorder = Recorder(logdir, config, task or identity, learner.step, resume, sessions)
     run = _Run(config, task, tasks, learner, recorder, counters, last_score, began)
-    previous = signal.signal(signal.SIGINT, run.request_stop)
+    # SIGTERM (`kill`, `ray job stop`, a scheduler) stops a run as Ctrl-C does: a final checkpoint first.
+    previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         return run.loop(resume)
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
         recorder.close()
         if run.interrupted:
             log.warning(
-                "stopped by Ctrl-C at learner step %d; checkpoint saved. Resume with: "
-                "rllock train --resume %s",
+                "stopped by %s at learner step %d; checkpoint saved. Resume with: rllock train --resume %s",
+                _signal_name(run.stop_signal),
                 learner.step,
                 logdir,
             )
+
+
+def _signal_name(signum: int | None) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum or signal.SIGTERM).name
 
 
 def _buffer_shape(
@@ -200,6 +206,7 @@ class _Run:
         self.schedule = Schedule.start(began, config)
         self.validation_plan = validation.Plan.of(config, task, tasks)
         self.interrupted = False
+        self.stop_signal: int | None = None  # the signal that stopped the run (SIGINT or SIGTERM)
         self.lag = 0
         # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
         self.batch_seconds: float | None = None
@@ -208,11 +215,11 @@ class _Run:
         self.memory = {"driver": 0.0, "buffer": 0.0, "actor": 0.0}  # peak resident MiB per process kind
 
     def request_stop(self, signum, frame) -> None:
-        del signum, frame
-        if self.interrupted:  # a second Ctrl-C: stop at once
+        del frame
+        if self.interrupted:  # a second signal: stop at once
             raise KeyboardInterrupt
-        self.interrupted = True
-        log.warning("Ctrl-C: saving a checkpoint and stopping (press again to abort)")
+        self.interrupted, self.stop_signal = True, signum
+        log.warning("%s: saving a checkpoint and stopping (again to abort)", _signal_name(signum))
 
     def loop(self, resume: bool) -> dict:
         self.buffer = self._start_buffer(resume)
@@ -340,6 +347,7 @@ class _Run:
             "actors": self.layout.actors,
             "logdir": str(self.recorder.logdir),
             "interrupted": self.interrupted,
+            "stop_signal": self.stop_signal,
             "peak_rss_mb": dict(self.memory),
         }
 

@@ -121,6 +121,25 @@ def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     assert _steps(logdir)[-1] >= before and (logdir / "replay.npz").exists()
 
 
+def test_sigterm_stops_like_ctrl_c_with_a_final_checkpoint(tmp_path):
+    """`kill`, `ray job stop` and schedulers send SIGTERM: the run saves a checkpoint at the signal and
+    says how to resume, exit status 128 + 15."""
+    logdir = tmp_path / "run"
+    proc = _train(*TINY, "--minutes", "5", "--logdir", str(logdir))
+    try:
+        _wait_for(lambda: any(s > 0 for s in _steps(logdir)), timeout=240)
+        before = _steps(logdir)[-1]
+        os.kill(proc.pid, signal.SIGTERM)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, out
+    assert "SIGTERM: saving a checkpoint" in out and "stopped by SIGTERM at learner step" in out
+    assert f"rllock train --resume {logdir}" in out and "Traceback" not in out
+    assert _steps(logdir)[-1] >= before and (logdir / "replay.npz").exists()
+
+
 def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun(tmp_path):
     """Slow validations (many episodes, many simulations) must be skipped, not run past the budget."""
     logdir = tmp_path / "run"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -53,7 +54,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"train: stopped at learner step {result['steps']}; resume with: "
             f"rllock train --resume {result['logdir']}\n"
         )
-        return 130
+        return 128 + int(result["stop_signal"] or signal.SIGINT)  # 130 after Ctrl-C, 143 after SIGTERM
     val = result["validation"]
     last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
     best = result["best_success_rate"]
