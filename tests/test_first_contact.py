@@ -158,3 +158,14 @@ def test_help_shows_the_defaults(command):
     for flag, default in (("--count", "1" if command == "solve" else "5"), ("--seed", "0")):
         assert f"(default {default})" in text.split(flag, 2)[-1].split("--", 1)[0], flag
     assert "a hard limit (default " in text
+
+
+def test_advice_names_general_only_where_it_can_generate():
+    from orchestration.cli.longwork import advice, general_serves
+
+    fits, too_big, path = make_task("cube5", 13), make_task("desia-bunny", 30), make_task("cube5", 13, "path")
+    assert general_serves(fits) and not general_serves(too_big) and not general_serves(path)
+    assert "rllock generate --checkpoint general --shape cube5 --pieces 13" in advice(
+        fits, fits_general=True, more="more time"
+    )
+    assert "general" not in advice(path, fits_general=False, more="more time")

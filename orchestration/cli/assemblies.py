@@ -25,7 +25,7 @@ from orchestration.cli.common import (
     fresh_out,
     picture_writer,
 )
-from orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
+from orchestration.cli.longwork import INTERRUPTED, advice, general_serves, graceful_stop, is_interrupt, kept
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.core.verifier import Verdict, verify_labels
 from rllock.errors import RLLockError
@@ -164,9 +164,8 @@ def _nothing_found(task, args: argparse.Namespace, stats) -> str:
             lines[-1] += f"; of {raw} chunks sampled for piece {piece}, " + ", ".join(
                 f"{failed[name]} fail {name}" for name in order
             )
-    fits = task.removal == "straight" and max(task.topology.grid.shape) <= 8
     more = f"more time (--time-limit {2 * args.time_limit:g})"
-    lines.append("  " + advice(task, fits_general=fits, more=more))
+    lines.append("  " + advice(task, fits_general=general_serves(task), more=more))
     return "\n".join(lines) + "\n"
 
 

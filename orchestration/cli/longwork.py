@@ -50,6 +50,22 @@ def kept(command: str, count: int, where: object) -> str:
     return f"{command}: interrupted; kept {what}" + (f" in {where}" if count else "") + "\n"
 
 
+def general_serves(task: Task) -> bool:
+    """Whether the shipped multi-task checkpoint `general` can generate for `task` (the check
+    `generate --checkpoint general` makes: its canvas, removal mode and checkers)."""
+    from rllock.errors import RLLockError
+    from rllock.files.checkpoint import SHIPPED, read_metadata, shipped_names
+    from rllock.search.inference import check_fits
+
+    if "general" not in shipped_names():
+        return False
+    try:
+        check_fits(task, read_metadata(SHIPPED / "general"), SHIPPED / "general")
+    except RLLockError:
+        return False
+    return True
+
+
 def advice(task: Task, *, fits_general: bool, more: str) -> str:
     """What to try after a search found nothing: `more` names the budget that can grow."""
     tries = [more, f"another K (K={task.pieces - 1} or K={task.pieces + 1})"]

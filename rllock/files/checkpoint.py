@@ -84,10 +84,6 @@ class Metadata:
     def removal(self) -> str:
         return str(self.task["removal"])
 
-    def describe_task(self) -> str:
-        """The task in words, for messages and tables."""
-        return describe_identity(self.task)
-
     @staticmethod
     def of(
         config: TrainConfig,

@@ -227,8 +227,7 @@ class Searcher:
         compiled: CompiledSearch | None = None,
     ):
         self.compiled = CompiledSearch(net, config, space, task, batch) if compiled is None else compiled
-        self.net, self.config, self.space = net, config, space
-        self.canvas, self.batch = self.compiled.canvas, batch
+        self.batch = batch
         self.slot = self.compiled.new_slot()
 
     def play(
@@ -243,9 +242,8 @@ class Searcher:
     ) -> list[Episode]:
         """`batch` episodes in lockstep from the empty state; each decision takes the search's
         action. `times`, when given, accumulates where the time went; `parallel`: see `NodeStore`."""
-        store = self.space(
-            task, self.config, self.canvas, seed, parallel, task_planes=self.net.config.task_planes
-        )
+        c = self.compiled
+        store = c.space(task, c.config, c.canvas, seed, parallel, task_planes=c.net.config.task_planes)
 
         def decide(sub: jax.Array, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             actions, weights, _ = self.search(params, sub, store, nodes)

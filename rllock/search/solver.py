@@ -59,7 +59,6 @@ class SearchStats:
 
     expansions: int = 0
     restarts: int = 0
-    found: int = 0
     deepest: State | None = None  # a state with the most pieces placed so far
     reported: float = field(default=0.0, repr=False)  # when progress was last reported
 
@@ -182,7 +181,6 @@ def search(
         if key in seen:
             continue
         seen.add(key)
-        stats.found += 1
         now = time.monotonic()
         yield Found(task.topology.to_grid(labels), now - last, used)
         last, used, restart = now, 0, 0
