@@ -9,8 +9,17 @@ import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
+from matplotlib.path import Path as MplPath
+from scipy import ndimage
 
-from rllock.core.meshes import assembly_meshes, edge_only_contacts, piece_mesh, piece_volume
+from rllock.core.meshes import (
+    _inside_rows,
+    assembly_meshes,
+    edge_only_contacts,
+    piece_mesh,
+    piece_volume,
+    voxelize_mesh,
+)
 from rllock.core.shapes import load_shape
 from rllock.errors import RLLockError
 
@@ -34,6 +43,45 @@ def _manifold(mesh: trimesh.Trimesh) -> m3.Manifold:
     )
 
 
+def _frame(mesh: trimesh.Trimesh, shape: tuple[int, ...], resolution: int) -> tuple[np.ndarray, float]:
+    """(lower corner, pitch) of a voxelized mesh's grid: centred on its bounding box, `resolution` voxels
+    along its longest side."""
+    lo, hi = mesh.bounds
+    pitch = float((hi - lo).max()) / resolution
+    return (lo + hi) / 2 - np.asarray(shape) * pitch / 2, pitch
+
+
+def _shares(mesh: trimesh.Trimesh, grid: np.ndarray, resolution: int, cells: np.ndarray) -> np.ndarray:
+    """The exact share of each cell's volume inside the mesh, from manifold3d's intersection of the solid
+    with the cell's box."""
+    origin, pitch = _frame(mesh, grid.shape, resolution)
+    solid, box = _manifold(mesh), m3.Manifold.cube([pitch] * 3)
+    corners = origin + np.asarray(cells, dtype=float).reshape(-1, 3) * pitch
+    return np.array([(solid ^ box.translate(corner)).volume() / pitch**3 for corner in corners])
+
+
+def _centres_inside(mesh: trimesh.Trimesh, shape: tuple[int, ...], resolution: int) -> np.ndarray:
+    """The old rule, as a reference: voxel centres inside the mesh, each layer tested against the solid's
+    cross-section by matplotlib. The centres are nudged as the module nudges them, so that near-ties
+    fall the same way."""
+    origin, pitch = _frame(mesh, shape, resolution)
+    centres = [
+        origin[a] + (np.arange(shape[a]) + 0.5 + 1e-4 * np.sqrt((2, 3, 5)[a])) * pitch for a in range(3)
+    ]
+    points = np.stack(np.meshgrid(centres[0], centres[1], indexing="ij"), axis=-1).reshape(-1, 2)
+    grid = np.zeros(shape, dtype=bool)
+    for iz, z in enumerate(centres[2]):
+        inside = np.zeros(len(points), dtype=bool)
+        for contour in _manifold(mesh).slice(z).to_polygons():
+            inside ^= MplPath(contour).contains_points(points)
+        grid[:, :, iz] = inside.reshape(shape[:2])
+    return grid
+
+
+def _parts(grid: np.ndarray) -> int:
+    return int(ndimage.label(grid)[1])  # 6-connected
+
+
 def test_box_mesh_voxelizes_to_a_full_box(tmp_path):
     trimesh.creation.box(extents=[4, 2, 1]).export(tmp_path / "box.stl")
     grid = load_shape(str(tmp_path / "box.stl"), resolution=4)
@@ -43,12 +91,119 @@ def test_box_mesh_voxelizes_to_a_full_box(tmp_path):
 
 
 def test_sphere_fills_its_inside(tmp_path):
-    trimesh.creation.icosphere(subdivisions=3, radius=1.0).export(tmp_path / "ball.obj")
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ball.export(tmp_path / "ball.obj")
     grid = load_shape(str(tmp_path / "ball.obj"), resolution=10)
     assert grid.shape == (10, 10, 10)
     assert grid[5, 5, 5] and not grid[0, 0, 0]
     # Voxel centres inside a radius-5 ball: about 4/3 pi 5^3 = 524 of them.
     assert abs(int(grid.sum()) - 524) < 0.1 * 524
+    # A convex model does not grow: exactly the voxels whose centre is inside the polyhedron, at every
+    # resolution (the half rule and the bridges add nothing).
+    for resolution in (7, 10, 13, 16):
+        grid = voxelize_mesh(tmp_path / "ball.obj", resolution)
+        origin, pitch = _frame(ball, grid.shape, resolution)
+        centres = origin + (np.argwhere(np.ones(grid.shape, dtype=bool)) + 0.5) * pitch
+        offsets = centres @ ball.face_normals.T - np.sum(ball.face_normals * ball.triangles[:, 0], axis=1)
+        np.testing.assert_array_equal(grid.ravel(), (offsets < 0).all(axis=1))
+
+
+def test_voxels_less_than_half_inside_stay_empty(tmp_path):
+    # A 4-cube with a 1.3 x 1.3 post on top, at pitch 1: the post fills one column of voxels and 30% (or
+    # 9%) of its neighbours, whose centres are outside: those stay empty.
+    block = trimesh.creation.box(bounds=[[0, 0, 0], [4, 4, 4]])
+    post = trimesh.creation.box(bounds=[[0, 0, 3.5], [1.3, 1.3, 6]])
+    trimesh.boolean.union([block, post], engine="manifold").export(tmp_path / "post.stl")
+    grid = load_shape(str(tmp_path / "post.stl"), resolution=6)
+    assert grid.shape == (4, 4, 6) and grid[:, :, :4].all()
+    np.testing.assert_array_equal(np.argwhere(grid[:, :, 4:]), [(0, 0, 0), (0, 0, 1)])
+
+
+def test_a_slot_through_the_centres_keeps_the_voxels_it_cuts(tmp_path):
+    # A slot 0.1 wide through the plane of centres x = 1.5, down to 0.3 above the bottom: the voxels it
+    # cuts lose their centre but keep 90% of their volume or more. The centre rule alone split the block
+    # in two, and a bridge would have added only one of them back.
+    block = trimesh.creation.box(bounds=[[0, 0, 0], [4, 4, 2]])
+    slot = trimesh.creation.box(bounds=[[1.45, -1, 0.3], [1.55, 5, 3]])
+    solid = trimesh.boolean.difference([block, slot], engine="manifold")
+    solid.export(tmp_path / "slot.stl")
+    grid = voxelize_mesh(tmp_path / "slot.stl", 4)
+    assert grid.shape == (4, 4, 2) and grid.all()
+    assert not _centres_inside(solid, grid.shape, 4)[1].any()
+    assert (_shares(solid, grid, 4, np.argwhere(grid)) > 0.5).all()
+
+
+def test_boxes_that_meet_along_an_edge_are_bridged_into_one_shape(tmp_path, caplog):
+    # Two slabs that overlap only in a 0.1 x 0.1 column at (1.85, 1.85). At pitch 0.8 the voxel centres
+    # give a 2x2 and a 3x3 block that touch only along an edge: the old rule dropped the smaller one, and
+    # so refused the mesh.
+    a = trimesh.creation.box(bounds=[[0, 0, 0], [1.9, 1.9, 1]])
+    b = trimesh.creation.box(bounds=[[1.8, 1.8, 0], [4, 4, 1]])
+    solid = trimesh.boolean.union([a, b], engine="manifold")
+    solid.export(tmp_path / "edge.stl")
+    with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
+        grid = voxelize_mesh(tmp_path / "edge.stl", 5)
+    assert not caplog.text
+    assert grid.shape == (5, 5, 2) and _parts(grid) == 1
+    centres = _centres_inside(solid, grid.shape, 5)
+    assert _parts(centres) == 2 and (grid >= centres).all()
+    assert grid[:2, :2].all() and grid[2:, 2:].all()
+    # One voxel joins them, beside the edge, and holds some of the solid.
+    (bridge,) = np.argwhere(grid & ~centres)
+    assert tuple(bridge[:2]) in {(1, 2), (2, 1)}
+    assert _shares(solid, grid, 5, [bridge])[0] > 0
+
+
+def test_a_thin_bar_off_the_centres_is_kept(tmp_path, caplog):
+    # Two cubes joined by a bar 0.4 thick off their centre line: at resolution 4 (pitch 1.5) no voxel
+    # centre lies in it, so the old rule found two halves; the bar is now two voxels.
+    left, right = trimesh.creation.box(extents=[2, 2, 2]), trimesh.creation.box(extents=[2, 2, 2])
+    right.apply_translation([4, 0, 0])
+    bar = trimesh.creation.box(extents=[2.2, 0.4, 0.4])
+    bar.apply_translation([2, 0.5, 0.5])
+    solid = trimesh.boolean.union([left, bar, right], engine="manifold")
+    solid.export(tmp_path / "dumbbell.stl")
+    with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
+        grid = voxelize_mesh(tmp_path / "dumbbell.stl", 4)
+    assert not caplog.text
+    centres = _centres_inside(solid, grid.shape, 4)
+    assert _parts(centres) == 2 and _parts(grid) == 1 and (grid >= centres).all()
+    added = np.argwhere(grid & ~centres)
+    np.testing.assert_array_equal(added, [(1, 1, 1), (2, 1, 1)])  # where the bar runs
+    assert (_shares(solid, grid, 4, added) > 0).all()
+
+
+def _bunny_like() -> trimesh.Trimesh:
+    """A body, a head and two slanted ears thinner than a voxel at the resolutions below."""
+    body = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    body.apply_scale([1.2, 1.0, 0.9])
+    head = trimesh.creation.icosphere(subdivisions=3, radius=0.55)
+    head.apply_translation([1.1, 0, 0.75])
+    ears = []
+    for side in (-1, 1):
+        ear = trimesh.creation.capsule(height=0.9, radius=0.1, count=[16, 16])
+        ear.apply_transform(trimesh.transformations.rotation_matrix(np.radians(25 * side), [1, 0, 0]))
+        ear.apply_transform(trimesh.transformations.rotation_matrix(np.radians(-20), [0, 1, 0]))
+        ear.apply_translation([1.15, 0.2 * side, 1.55])
+        ears.append(ear)
+    return trimesh.boolean.union([body, head, *ears], engine="manifold")
+
+
+def test_thin_slanted_ears_stay_on(tmp_path, caplog):
+    model = _bunny_like()
+    model.export(tmp_path / "bunny.stl")
+    split = 0
+    for resolution in range(7, 21):
+        with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
+            grid = voxelize_mesh(tmp_path / "bunny.stl", resolution)
+        assert not caplog.text, resolution
+        centres = _centres_inside(model, grid.shape, resolution)
+        split += _parts(centres) > 1
+        assert _parts(grid) == 1 and (grid >= centres).all(), resolution
+        # Every voxel the old rule lacked holds some of the solid: none is added in empty space.
+        assert (_shares(model, grid, resolution, np.argwhere(grid & ~centres)) > 0).all(), resolution
+    assert split >= 5  # the ears did fall off under the old rule
+    np.testing.assert_array_equal(grid, voxelize_mesh(tmp_path / "bunny.stl", 20))
 
 
 def test_disconnected_mesh_keeps_the_largest_part(tmp_path, caplog):
@@ -58,30 +213,69 @@ def test_disconnected_mesh_keeps_the_largest_part(tmp_path, caplog):
     trimesh.util.concatenate([big, small]).export(tmp_path / "two.obj")
     with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
         grid = load_shape(str(tmp_path / "two.obj"), resolution=13)
-    # Pitch 0.5: the big box is 4x4x4 voxels, the small one 2x2x2.
+    # Pitch 0.5: the big box is 4x4x4 voxels, the small one 2x2x2; nothing joins them.
     assert grid.shape == (4, 4, 4) and grid.all()
-    assert "dropped 8 of 72 voxels" in caplog.text
+    assert "dropped 8 of 72 voxels; no resolution up to 26 keeps them together" in caplog.text
+
+
+def _dumbbell(left: float, right: float, gap: float, bar: float, offset: float) -> trimesh.Trimesh:
+    """Cubes of sides `left` and `right`, `gap` apart along x, joined by a bar `bar` thick whose lower
+    edges are `offset` - bar/2 off the cubes' centre line along y and z."""
+    a, b = trimesh.creation.box(extents=[left] * 3), trimesh.creation.box(extents=[right] * 3)
+    a.apply_translation([left / 2, 0, 0])
+    b.apply_translation([left + gap + right / 2, 0, 0])
+    rod = trimesh.creation.box(extents=[gap + 0.2, bar, bar])
+    rod.apply_translation([left + gap / 2, offset, offset])
+    return trimesh.boolean.union([a, rod, b], engine="manifold")
 
 
 def test_a_mesh_that_falls_apart_is_refused_with_a_resolution_that_keeps_it(tmp_path):
-    # Two cubes joined by a thin bar off their centre line: at resolution 4 no voxel centre lies in it.
-    left, right = trimesh.creation.box(extents=[2, 2, 2]), trimesh.creation.box(extents=[2, 2, 2])
-    right.apply_translation([4, 0, 0])
-    bar = trimesh.creation.box(extents=[2.2, 0.4, 0.4])
-    bar.apply_translation([2, 0.5, 0.5])
-    solid = trimesh.boolean.union([left, bar, right], engine="manifold")
-    solid.export(tmp_path / "dumbbell.stl")
-    with pytest.raises(RLLockError, match=r"falls apart: its largest connected part keeps \d+ of \d+ voxels"):
-        load_shape(str(tmp_path / "dumbbell.stl"), resolution=4)
+    # A bar 0.2 thick, at 0.2..0.4 off the centre line: at resolution 4 it falls between the sub-samples
+    # (0.15 and 0.45), at resolution 5 one row of them (0.36) runs through it.
+    _dumbbell(2, 2, 2, 0.2, 0.3).export(tmp_path / "dumbbell.stl")
     with pytest.raises(RLLockError) as refused:
         load_shape(str(tmp_path / "dumbbell.stl"), resolution=4)
-    higher = int(str(refused.value).split("--resolution ")[1].split()[0])
-    grid = load_shape(str(tmp_path / "dumbbell.stl"), resolution=higher)  # no error: one part now
-    assert grid.sum() > 0 and higher > 4
-    two = trimesh.util.concatenate([left, right])  # never joined
-    two.export(tmp_path / "two_cubes.stl")
-    with pytest.raises(RLLockError, match="no resolution up to 12 keeps them together"):
-        load_shape(str(tmp_path / "two_cubes.stl"), resolution=6)
+    message = str(refused.value)
+    assert "\n" not in message
+    assert "falls apart: its largest connected part keeps 4 of 8 voxels; --resolution 5 keeps" in message
+    grid = load_shape(str(tmp_path / "dumbbell.stl"), resolution=5)  # no error: one part now
+    assert grid.shape == (5, 2, 2) and _parts(grid) == 1 and grid[2].any()
+    # Without the bar, nothing joins them, though at pitch 1.5 the voxels either side of the 2-wide gap
+    # each hold some of a cube: no sub-sample pair across the face between those voxels is inside.
+    left, right = trimesh.creation.box(extents=[2, 2, 2]), trimesh.creation.box(extents=[2, 2, 2])
+    right.apply_translation([4, 0, 0])
+    trimesh.util.concatenate([left, right]).export(tmp_path / "two_cubes.stl")
+    with pytest.raises(RLLockError, match="keeps 4 of 8 voxels; no resolution up to 8 keeps them together"):
+        load_shape(str(tmp_path / "two_cubes.stl"), resolution=4)
+
+
+def test_a_small_loose_part_is_dropped_with_a_warning_naming_a_resolution_that_keeps_it(tmp_path, caplog):
+    _dumbbell(3, 1, 1.5, 0.15, 0.3).export(tmp_path / "lopsided.stl")
+    with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
+        grid = load_shape(str(tmp_path / "lopsided.stl"), resolution=5)
+    assert len(caplog.records) == 1
+    assert "dropped 1 of 28 voxels; --resolution 6 keeps its parts together" in caplog.text
+    assert _parts(grid) == 1 and grid.sum() == 27
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rllock.core.meshes"):
+        grid = load_shape(str(tmp_path / "lopsided.stl"), resolution=6)
+    assert not caplog.text and _parts(grid) == 1
+
+
+def test_rows_of_points_in_polygons_match_matplotlib():
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        contours = []
+        for radius, turn in ((1.0, 1), (0.4, -1)):  # an outline and a hole inside it, the other way round
+            angles = np.sort(rng.uniform(0, 2 * np.pi, int(rng.integers(3, 30))))[::turn]
+            r = radius * rng.uniform(0.5, 1, len(angles))
+            contours.append(np.c_[r * np.cos(angles), r * np.sin(angles)])
+        xs, ys = np.sort(rng.uniform(-1, 1, 37)), np.sort(rng.uniform(-1, 1, 41))
+        points = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+        expected = np.zeros(len(points), dtype=bool)
+        for contour in contours:
+            expected ^= MplPath(contour).contains_points(points)
+        np.testing.assert_array_equal(_inside_rows(contours, xs, ys), expected.reshape(37, 41))
 
 
 @pytest.mark.parametrize(
