@@ -12,9 +12,10 @@ of the actor's process (`actor_env`), so that actors never oversubscribe the cor
 from __future__ import annotations
 
 import os
+import pickle
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import jax
@@ -85,11 +86,13 @@ class PlayStats:
     simulations: int
     version: int
     pid: int  # the actor's process, to notice restarts
+    node: str  # the Ray node it ran on, to say where actors run and notice moves
     peak_rss_mb: float
     seconds: float
     times: TimeSplit
     group: int = -1  # multi-task runs: the task group the batch drew
     pieces: int = 0  # the batch's K
+    sent_bytes: int = 0  # the episodes' pickled size, as Ray ships them to the replay buffer
 
 
 def evaluate(
@@ -157,6 +160,7 @@ class SelfPlayWorker:
             decisions * self.simulations_per_decision,
             self.version,
             os.getpid(),
+            ray.get_runtime_context().get_node_id() if ray.is_initialized() else "",
             peak_rss_mb(),
             seconds,
             times,
@@ -177,8 +181,9 @@ class SelfPlayActor:
         self.worker: SelfPlayWorker | None = None
         self.buffer: Any = None  # the replay buffer actor's handle (Ray types its methods as Never)
 
-    def pid(self) -> int:
-        return os.getpid()
+    def where(self) -> tuple[int, str]:
+        """(this process, its Ray node)."""
+        return os.getpid(), ray.get_runtime_context().get_node_id()
 
     def run(self, setup: list, weights: list, version: int) -> PlayStats:
         """`setup` is [ObjectRef of (PlaySpec, replay buffer handle)] and `weights` [ObjectRef of the
@@ -191,4 +196,9 @@ class SelfPlayActor:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
         ray.get(self.buffer.add_many.remote(episodes, stats.pieces))  # waits: bounded in-flight data
-        return stats
+        return replace(stats, sent_bytes=len(pickle.dumps(episodes, protocol=5)))
+
+    def fetch(self, weights: list) -> int:
+        """Fetch a weights version and nothing else (`rllock bench scaling`'s broadcast latency); returns
+        the parameters' bytes."""
+        return sum(leaf.nbytes for leaf in jax.tree_util.tree_leaves(ray.get(weights[0])))

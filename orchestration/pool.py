@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import logging
 import os
+from collections import Counter
 from dataclasses import dataclass
 
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, TaskSpec, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
@@ -88,19 +90,27 @@ def plan_layout(
         gpu = 1.0 if gpus > 0 else 0.0
         worker = min(free, node_cpus or free)  # one worker: it must fit on one node
         return Layout(1, actors * selfplay.episodes_per_batch, worker, max(1, int(worker)), 1, gpu, mode)
-    share = free / actors  # fractional when there are more actors than cores: they take turns
+    # Fractional when there are more actors than cores: they take turns. An actor runs on one node, so
+    # it takes no more than the largest node has.
+    share = min(free / actors, node_cpus or free)
     threads = max(1, int(share))
     return Layout(actors, selfplay.episodes_per_batch, share, threads, threads, 0.0, mode)
 
 
 class ActorPool:
-    """Self-play actors, each with one batch in flight. A dead actor process is restarted by Ray and its
-    call retried; the pool notices the new process and logs it. An actor that fails for good is dropped.
+    """Self-play actors, each with one batch in flight, spread over the cluster's nodes.
+
+    A dead actor process, or one whose node was lost, is restarted by Ray (on a node with room for it,
+    once there is one: a node that joins later takes it) and its call retried; the pool notices the new
+    process or node and logs it. An actor that fails for good is replaced by a new one; only when
+    `MAX_FAILURES_IN_A_ROW` batches fail with none finishing in between does the pool give up.
 
     What an actor plays (the spec and the replay buffer's handle) is put in Ray's object store once and
     travels by reference with every call, not in the constructor: Ray does not keep an actor's
     constructor arguments alive for its restarts (ray-project/ray#53727), while a retried call brings
-    its own arguments."""
+    its own arguments. The driver owns those objects, so they live as long as the driver's node."""
+
+    MAX_FAILURES_IN_A_ROW = 10
 
     def __init__(
         self,
@@ -112,29 +122,38 @@ class ActorPool:
         seed: int,
         buffer,
     ):
-        options = dict(
+        self.options = dict(
             num_cpus=layout.cpus,
             num_gpus=layout.gpus,
             max_restarts=-1,
             max_task_retries=-1,
+            # One actor per node before two on any: a lost node then takes the fewest actors with it.
+            scheduling_strategy="SPREAD",
             runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
         )
+        self.seed, self.started = seed, 0
         self.setup = [ray.put((PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), buffer))]
-        # mypy skips class decorators: @ray.remote made SelfPlayActor an ActorClass, which has .options.
-        self.actors = [
-            SelfPlayActor.options(**options).remote(seed + i)  # type: ignore[attr-defined]
-            for i in range(layout.actors)
-        ]
+        self.actors = [self._start() for _ in range(layout.actors)]
+        self.number = {a: i + 1 for i, a in enumerate(self.actors)}  # for the log: actor 1, 2, ...
         try:
-            pids = ray.get([a.pid.remote() for a in self.actors], timeout=PLACEMENT_TIMEOUT_S)
+            places = ray.get([a.where.remote() for a in self.actors], timeout=PLACEMENT_TIMEOUT_S)
         except GetTimeoutError:
             raise RLLockError(
                 f"the self-play actors could not start within {PLACEMENT_TIMEOUT_S:.0f} s: does a node "
                 f"of the cluster have {layout.cpus:g} free CPUs{' and a GPU' if layout.gpus else ''}? "
                 f"(see --actors, --evaluation)"
             ) from None
-        self.pids = dict(zip(self.actors, pids))
+        self.places: dict = dict(zip(self.actors, places))
+        log.info("self-play actors: %s", placement_summary([node for _, node in places]))
         self.inflight: dict = {}
+        self.displaced: set = set()  # actors whose node was lost, until they report from a new one
+        self.failures_in_a_row = 0
+
+    def _start(self):
+        """A new actor, with a seed of its own (a replacement does not replay its predecessor's games)."""
+        self.started += 1
+        # mypy skips class decorators: @ray.remote made SelfPlayActor an ActorClass, which has .options.
+        return SelfPlayActor.options(**self.options).remote(self.seed + self.started - 1)  # type: ignore[attr-defined]
 
     def submit(self, actor, weights: list, version: int) -> None:
         self.inflight[actor.run.remote(self.setup, weights, version)] = (actor, version)
@@ -144,27 +163,73 @@ class ActorPool:
             self.submit(actor, weights, version)
 
     def oldest_version(self) -> int | None:
-        return min((v for _, v in self.inflight.values()), default=None)
+        """The oldest weights version in flight, of the actors whose node is alive: an actor waiting for
+        a node to restart on must not hold the learner back."""
+        return min((v for a, v in self.inflight.values() if a not in self.displaced), default=None)
 
-    def collect(self, timeout: float) -> list[tuple[object, PlayStats]]:
-        """The batches finished within `timeout` seconds (at most one wait), with their actors."""
+    def node_lost(self, node: str) -> int:
+        """Mark the actors that ran on `node` as waiting for a restart elsewhere; returns how many."""
+        lost = {a for a, (_, where) in self.places.items() if where == node}
+        self.displaced |= lost
+        return len(lost)
+
+    def collect(self, timeout: float, weights: list | None = None) -> list[tuple[object, PlayStats]]:
+        """The batches finished within `timeout` seconds (at most one wait), with their actors. An actor
+        that failed for good is replaced, and the replacement handed `weights` (the newest)."""
         ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=timeout)
         done = []
         for ref in ready:
-            actor, _ = self.inflight.pop(ref)
+            actor, version = self.inflight.pop(ref)
             try:
                 stats = ray.get(ref)
-            except RayActorError as exc:  # restarts exhausted or the node is gone: go on without it
-                log.error("a self-play actor failed for good: %s", str(exc).splitlines()[0])
+            except RayActorError as exc:
+                self._replace(actor, str(exc).splitlines()[0], weights, version)
                 continue
-            if self.pids[actor] != stats.pid:
-                log.warning("self-play actor restarted (pid %d -> %d)", self.pids[actor], stats.pid)
-                self.pids[actor] = stats.pid
+            self.failures_in_a_row = 0
+            self._note_place(actor, stats)
             done.append((actor, stats))
         return done
 
+    def _note_place(self, actor, stats: PlayStats) -> None:
+        before = self.places.get(actor)
+        if before is None:
+            log.info("self-play actor %d started on %s", self.number[actor], describe_node(stats.node))
+        elif before[1] != stats.node:
+            log.warning(
+                "self-play actor %d restarted on %s (it ran on %s)",
+                self.number[actor],
+                describe_node(stats.node),
+                describe_node(before[1]),
+            )
+        elif before[0] != stats.pid:
+            number = self.number[actor]
+            log.warning("self-play actor %d restarted (pid %d -> %d)", number, before[0], stats.pid)
+        self.places[actor] = (stats.pid, stats.node)
+        self.displaced.discard(actor)
+
+    def _replace(self, actor, why: str, weights: list | None, version: int) -> None:
+        self.failures_in_a_row += 1
+        if self.failures_in_a_row > self.MAX_FAILURES_IN_A_ROW:
+            raise RLLockError(
+                f"self-play actors failed {self.failures_in_a_row} times in a row with no batch finished "
+                f"(the last: {why}); see the log above"
+            )
+        number = self.number.pop(actor)
+        self.places.pop(actor, None)
+        self.displaced.discard(actor)
+        self.actors.remove(actor)
+        replacement = self._start()
+        self.actors.append(replacement)
+        self.number[replacement] = number
+        log.error("self-play actor %d failed for good (%s); a new actor takes its place", number, why)
+        if weights is not None:
+            self.submit(replacement, weights, version)
+
     def alive(self) -> bool:
         return bool(self.inflight)
+
+    def nodes_in_use(self) -> set[str]:
+        return {node for _, node in self.places.values()}
 
     def shutdown(self, settle_s: float = 10.0) -> None:
         """Stop every actor now; batches in flight are dropped. They are cancelled before their actors
@@ -179,3 +244,63 @@ class ActorPool:
         if calls:
             ray.wait(calls, num_returns=len(calls), timeout=settle_s)
         self.inflight.clear()
+
+
+def describe_node(node_id: str) -> str:
+    """ "node 1a2b3c4d (10.0.0.5)": the short id tells apart nodes that share an address."""
+    address = next((n["NodeManagerAddress"] for n in ray.nodes() if n["NodeID"] == node_id), "?")
+    return f"node {node_id[:8]} ({address})"
+
+
+def placement_summary(nodes: list[str]) -> str:
+    """ "2 on node 1a2b3c4d (10.0.0.5), 1 on node 9f8e7d6c (10.0.0.6)"."""
+    counts = Counter(nodes)
+    return ", ".join(f"{n} on {describe_node(node)}" for node, n in counts.most_common())
+
+
+def driver_node() -> str:
+    return ray.get_runtime_context().get_node_id()
+
+
+def on_driver_node() -> NodeAffinitySchedulingStrategy:
+    """Where an actor that writes into the run's folder must run: the driver's node, whose disk holds
+    the folder, and which lives as long as the run."""
+    return NodeAffinitySchedulingStrategy(node_id=driver_node(), soft=False)
+
+
+def driver_node_cpus() -> float:
+    node = driver_node()
+    return next((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n["NodeID"] == node), 0.0)
+
+
+@dataclass
+class NodeWatch:
+    """Says when a node of the cluster is lost or joins (checked at most every `every_s` seconds)."""
+
+    alive: set[str]
+    every_s: float = 5.0
+    next_check: float = 0.0
+
+    @staticmethod
+    def start() -> NodeWatch:
+        return NodeWatch(alive_nodes())
+
+    def check(self, now: float, pool: ActorPool) -> None:
+        if now < self.next_check:
+            return
+        self.next_check = now + self.every_s
+        alive = alive_nodes()
+        for node in self.alive - alive:
+            waiting = pool.node_lost(node)
+            log.warning(
+                "%s was lost%s",
+                describe_node(node),
+                f": its {waiting} self-play actor(s) restart on a node with room for them" if waiting else "",
+            )
+        for node in alive - self.alive:
+            log.info("%s joined the cluster", describe_node(node))
+        self.alive = alive
+
+
+def alive_nodes() -> set[str]:
+    return {n["NodeID"] for n in ray.nodes() if n.get("Alive")}

@@ -38,7 +38,17 @@ from learner.learner import Learner
 from learner.replay import ReplayBuffer
 from orchestration import validation
 from orchestration.pacing import Pacing, Schedule, final_reserve, validation_estimate
-from orchestration.pool import ActorPool, largest_node_cpus, plan_layout, start_ray
+from orchestration.pool import (
+    ActorPool,
+    NodeWatch,
+    describe_node,
+    driver_node,
+    driver_node_cpus,
+    largest_node_cpus,
+    on_driver_node,
+    plan_layout,
+    start_ray,
+)
 from orchestration.recorder import Counters, Recorder, best_rank
 from rllock.config import TrainConfig
 from rllock.core.env import Task, compact_dtypes, make_task
@@ -224,19 +234,32 @@ class _Run:
     def loop(self, resume: bool) -> dict:
         self.buffer = self._start_buffer(resume)
         pool = self._start_pool()
-        self._selfplay(pool)
-        self._charts()  # the curves end at the final step
+        try:
+            self._selfplay(pool)
+            if self.interrupted:
+                # SIGKILL may follow a SIGTERM within seconds (`ray job stop` waits 3 s unless the head
+                # was started with RAY_JOB_STOP_WAIT_TIME_S): the checkpoint comes before anything else.
+                self._final_checkpoint()
+        finally:
+            pool.shutdown()  # batches under way are dropped: the budget is a hard limit
         if not self.interrupted:
             self._validate_if_it_fits(time.monotonic(), final=True)
-        self._checkpoint()
+            self._final_checkpoint()
         return self._result()
+
+    def _final_checkpoint(self) -> None:
+        self._charts()  # the curves end at the final step
+        self._checkpoint()
 
     def _start_buffer(self, resume: bool) -> Any:
         """The replay buffer actor, holding the run's snapshot when resumed. Its handle is Any: Ray types an
         ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
         shape, dtypes = _buffer_shape(self.config, self.task, self.tasks)
-        buffer: Any = ray.remote(num_cpus=0)(ReplayBuffer).remote(
-            self.config.buffer_capacity, *shape, *dtypes
+        # It snapshots into the run's folder, so it runs where the folder is: the driver's node.
+        buffer: Any = (
+            ray.remote(num_cpus=0)(ReplayBuffer)
+            .options(scheduling_strategy=on_driver_node())
+            .remote(self.config.buffer_capacity, *shape, *dtypes)
         )
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():
@@ -246,6 +269,7 @@ class _Run:
                 cause = exc.cause if isinstance(exc.cause, RLLockError) else None
                 raise RLLockError(str(cause or exc).splitlines()[0]) from None
             log.info("replay buffer restored: %d transitions", restored)
+        log.info("learner and replay buffer on %s, with the run's folder", describe_node(driver_node()))
         return buffer
 
     def _start_pool(self) -> ActorPool:
@@ -256,7 +280,8 @@ class _Run:
             config.selfplay,
             cpus=resources.get("CPU", 1),
             gpus=resources.get("GPU", 0),
-            reserved_cpus=1,
+            # the learner's core, where it is a Ray CPU: a head started with --num-cpus=0 lends none
+            reserved_cpus=min(1.0, driver_node_cpus()),
             node_cpus=largest_node_cpus(),
         )
         spec, described = self._played()
@@ -290,19 +315,20 @@ class _Run:
         return TaskSpec.of(self.task), f"{self.task.shape_name} K={self.task.pieces}"
 
     def _selfplay(self, pool: ActorPool) -> None:
-        """Self-play and learn until Ctrl-C, the last learner step, or the end of the budget less what the
-        final validation needs; then stop the actors."""
+        """Self-play and learn until a stop signal, the last learner step, or the end of the budget less
+        what the final validation needs."""
         c, learner = self.counters, self.learner
         weights = [ray.put(jax.device_get(learner.params))]
         pool.submit_all(weights, c.version)
         start, base_seconds = time.monotonic(), c.seconds
+        nodes = NodeWatch.start()
         while (
             not self.interrupted and self._selfplay_time_left() and not self.pacing.reached_max(learner.step)
         ):
             weights = self._turn(pool, weights)
             c.seconds = base_seconds + time.monotonic() - start
+            nodes.check(time.monotonic(), pool)
             self._periodic(time.monotonic())
-        pool.shutdown()  # batches under way are dropped: the budget is a hard limit
         c.seconds = base_seconds + time.monotonic() - start
 
     def _selfplay_time_left(self) -> bool:
@@ -324,11 +350,9 @@ class _Run:
             oldest_version=c.version if oldest is None else oldest,
         )
         timeout = 0.0 if can_learn else min(1.0, max(0.0, self.schedule.deadline - time.monotonic()))
-        for actor, stats in pool.collect(timeout):
+        for actor, stats in pool.collect(timeout, weights):
             self._count(stats)
             pool.submit(actor, weights, c.version)
-        if not pool.alive():
-            raise RLLockError("every self-play actor has failed; see the log above")
         if can_learn and self._learn():
             return [ray.put(jax.device_get(learner.params))]
         return weights

@@ -194,3 +194,6 @@ def test_layouts_give_each_actor_its_share_of_the_cores():
         SelfPlayConfig(evaluation="lockstep"), cpus=64, gpus=1, reserved_cpus=1, node_cpus=16
     )
     assert cluster.cpus == 16 and cluster.threads == 16  # one worker fits on one node
+    # an actor runs on one node: two 1-CPU worker nodes give one actor 1 CPU, not 2
+    spread = plan_layout(SelfPlayConfig(actors=1), cpus=2, gpus=0, reserved_cpus=0, node_cpus=1)
+    assert (spread.cpus, spread.threads) == (1, 1)

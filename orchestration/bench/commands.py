@@ -10,6 +10,7 @@ import logging
 import sys
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -216,6 +217,42 @@ def cmd_bench_selfplay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _counts(text: str, flag: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(c) for c in text.split(","))
+    except ValueError:
+        raise RLLockError(f"{flag} takes a comma-separated list of counts, got {text!r}") from None
+    if min(counts) < 1:
+        raise RLLockError(f"{flag} counts must be at least 1")
+    return counts
+
+
+def cmd_bench_scaling(args: argparse.Namespace) -> int:
+    ray_on_loopback_unless(None)  # the bench's nodes all on 127.0.0.1
+    import dataclasses
+
+    from orchestration.bench.scaling import PRESETS, bench_scaling, format_scaling
+
+    plan = PRESETS[args.preset]
+    changes: dict[str, Any] = {
+        name: value
+        for name, value in (
+            ("shape", args.shape),
+            ("pieces", args.pieces),
+            ("simulations", args.simulations),
+            ("episodes_per_batch", args.episodes_per_batch),
+            ("actors", args.actors and _counts(args.actors, "--actors")),
+            ("nodes", args.nodes and _counts(args.nodes, "--nodes")),
+            ("seconds", args.seconds),
+            ("learner_steps", args.learner_steps),
+        )
+        if value is not None
+    }
+    result = bench_scaling(dataclasses.replace(plan, **changes))
+    sys.stdout.write(json.dumps(result) + "\n" if args.json else format_scaling(result))
+    return 0
+
+
 def add_table_bench_args(p: argparse.ArgumentParser, unit: str) -> None:
     """The paper's protocol per `unit` (arm or run) and the table's outputs, for bench paper and ablation."""
     add_protocol_args(p, count=5, time_limit=300.0, per=unit)
@@ -263,6 +300,29 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_selfplay)
+
+    p = bench.add_parser(
+        "scaling",
+        help="episodes and learner steps per second for actor counts, on one Ray node and on several",
+    )
+    p.add_argument(
+        "--preset",
+        choices=("small", "workstation"),
+        default="small",
+        help="small: cube4 K=7, 1 and 2 actors on 1 and 3 nodes, about 3 minutes on 2 cores; workstation: "
+        "6^3 K=25 at 256 simulations, 1-15 actors, the learner on the GPU against the CPU (actor counts "
+        "are capped at this machine's cores less one); the flags below change the preset's values",
+    )
+    p.add_argument("--shape")
+    p.add_argument("--pieces", type=int)
+    p.add_argument("--simulations", type=int)
+    p.add_argument("--episodes-per-batch", type=int)
+    p.add_argument("--actors", help="comma-separated actor counts")
+    p.add_argument("--nodes", help="comma-separated node counts (1: one node with every core)")
+    p.add_argument("--seconds", type=positive_float, help="each timed window")
+    p.add_argument("--learner-steps", type=int, help="timed steps of the learner alone, per platform")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_scaling)
 
 
 def _add_tables(bench: argparse._SubParsersAction) -> None:

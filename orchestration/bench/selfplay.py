@@ -6,14 +6,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import ray
-from ray.actor import ActorHandle
 
 from actors.selfplay import TaskSpec
 from learner.replay import ReplayBuffer
-from orchestration.pool import ActorPool, Layout, plan_layout, start_ray
+from orchestration.pool import ActorPool, Layout, on_driver_node, plan_layout, start_ray
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.core.env import Task, compact_dtypes
 from rllock.search.base import TimeSplit
@@ -22,54 +23,86 @@ from rllock.search.network import init_params
 log = logging.getLogger(__name__)
 
 
-def _measure(
-    task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float
-) -> dict:
-    # Ray types .remote() as ActorHandle | type[ReplayBuffer] (for its method typing); it is a handle.
-    buffer: ActorHandle = ray.remote(num_cpus=0)(ReplayBuffer).remote(  # type: ignore[assignment]
-        10_000, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task)
+def start_buffer(task: Task, mcts: MCTSConfig, capacity: int = 10_000) -> Any:
+    """A replay buffer actor for `task`, on this process's node, as training places it. Its handle is Any:
+    Ray types an ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
+    buffer: Any = (
+        ray.remote(num_cpus=0)(ReplayBuffer)
+        .options(scheduling_strategy=on_driver_node())
+        .remote(capacity, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task))
     )
-    pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)
-    weights = [params_ref]
-    pool.submit_all(weights, 0)  # compile and warm up outside the timed window
+    return buffer
+
+
+def drain(pool: ActorPool) -> None:
     while pool.alive():
         pool.collect(timeout=5.0)
-    episodes = simulations = decisions = 0
+
+
+def timed_window(
+    pool: ActorPool, weights: list, seconds: float, learn: Callable[[], None] | None = None
+) -> dict:
+    """Self-play throughput over a window of `seconds`: batches are handed out until it ends, and those
+    under way then count (the window ends with them). `learn`, when given, runs between collections, as
+    the learner does in training; its calls are counted."""
+    episodes = simulations = decisions = sent = steps = 0
     times = TimeSplit()
     busy = 0.0
     start = time.perf_counter()
     pool.submit_all(weights, 0)
     while pool.alive():
-        for actor, stats in pool.collect(timeout=1.0):
+        window_open = time.perf_counter() - start < seconds
+        for actor, stats in pool.collect(timeout=0.0 if learn and window_open else 1.0):
             episodes += stats.episodes
             simulations += stats.simulations
             decisions += stats.decisions
+            sent += stats.sent_bytes
             busy += stats.seconds
             times.add(stats.times)
-            if time.perf_counter() - start < seconds:  # batches under way count: the window ends with them
+            if time.perf_counter() - start < seconds:
                 pool.submit(actor, weights, 0)
+        if learn is not None and window_open:
+            learn()
+            steps += 1
     elapsed = time.perf_counter() - start
-    pool.shutdown()
-    ray.kill(buffer)
     sims = max(simulations, 1)
     return {
-        "actors": layout.actors,
-        "mode": layout.mode,
-        "episodes_per_batch": layout.episodes,
-        "threads_per_actor": layout.threads,
-        "groups_per_actor": layout.groups,
         "episodes": episodes,
         "decisions": decisions,
         "seconds": elapsed,
         "episodes_per_sec": episodes / elapsed,
         "episodes_per_hour": 3600 * episodes / elapsed,
         "simulations_per_sec": simulations / elapsed,
+        "learner_steps_per_sec": steps / elapsed,
+        "bytes_per_episode": sent / max(episodes, 1),
         "ms_per_simulation": {
             "sampling": 1000 * times.sampling / sims,
             "network": 1000 * times.network / sims,
             "host": 1000 * times.host / sims,
             "other": 1000 * max(0.0, busy - times.sampling - times.network - times.host) / sims,
         },
+    }
+
+
+def _measure(
+    task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float
+) -> dict:
+    buffer = start_buffer(task, mcts)
+    pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)
+    weights = [params_ref]
+    pool.submit_all(weights, 0)  # compile and warm up outside the timed window
+    drain(pool)
+    row = timed_window(pool, weights, seconds)
+    pool.shutdown()
+    ray.kill(buffer)
+    del row["learner_steps_per_sec"]
+    return {
+        "actors": layout.actors,
+        "mode": layout.mode,
+        "episodes_per_batch": layout.episodes,
+        "threads_per_actor": layout.threads,
+        "groups_per_actor": layout.groups,
+        **row,
     }
 
 

@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"rllock: error: {exc}\n")
         return 2
     except OSError as exc:  # unwritable or missing output paths, full disks: the system's own words
+        logging.getLogger("rllock").debug("where it happened", exc_info=True)  # with --verbose
         sys.stderr.write(f"rllock: error: {exc.strerror or exc}: {exc.filename or ''}\n")
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,150 @@
+"""Training on a real multi-node Ray cluster on this machine, submitted through Ray Jobs: a head (no
+CPUs, the Jobs API) and two worker nodes of one CPU each, every node with its own raylet, all on
+127.0.0.1 (`ray.cluster_utils.Cluster`; with RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 Ray keeps loopback
+addresses). A worker node is killed mid-run, a new one joins, and `ray job stop` ends the run."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from helpers import tiny_flags
+
+from rllock.config import SelfPlayConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _steps(logdir: Path) -> list[int]:
+    folder = logdir / "checkpoints"
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.exists() else []
+
+
+def _wait_for(what: str, condition: Callable[[], object], timeout: float, logs: Callable[[], str]):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(0.5)
+    pytest.fail(f"timed out waiting for {what}; the job's log:\n{logs()[-6000:]}")
+
+
+@pytest.fixture
+def cluster(monkeypatch) -> Iterator[tuple]:
+    """(the Cluster, the Jobs API's address, a function that adds a worker node of one CPU), torn down
+    whatever the test does. Each worker node has a temporary folder of its own, as separate machines
+    would: nodes that share one delete each other's unpacked job folders (Ray keeps them per node)."""
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    # `ray job stop` sends SIGTERM, then SIGKILL after this many seconds (Ray's default: 3).
+    monkeypatch.setenv("RAY_JOB_STOP_WAIT_TIME_S", "60")
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    from ray.cluster_utils import Cluster
+
+    port = _free_port()
+    head = {
+        "num_cpus": 0,
+        "node_ip_address": "127.0.0.1",
+        "include_dashboard": True,
+        "dashboard_host": "127.0.0.1",
+        "dashboard_port": port,
+    }
+    folders: list[str] = []
+
+    def add_worker():
+        # Ray's socket paths must stay under 108 bytes: pytest's tmp_path is too deep for them.
+        folders.append(tempfile.mkdtemp(prefix="rlw", dir="/tmp"))
+        return created.add_node(num_cpus=1, node_ip_address="127.0.0.1", temp_dir=folders[-1])
+
+    created = Cluster(initialize_head=True, head_node_args=head)
+    try:
+        yield created, f"http://127.0.0.1:{port}", add_worker
+    finally:
+        created.shutdown()
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _run(command: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+
+
+def _actor_nodes(api: str, class_name: str = "SelfPlayActor") -> set[str]:
+    """The nodes where actors of `class_name` are alive, from Ray's state API."""
+    from ray.util.state import list_actors
+
+    alive = list_actors(address=api, filters=[("class_name", "=", class_name), ("state", "=", "ALIVE")])
+    return {a.node_id for a in alive}
+
+
+@pytest.mark.slow
+def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(cluster, tmp_path):
+    from ray.job_submission import JobStatus, JobSubmissionClient
+
+    ray_cluster, api, add_worker = cluster
+    workers = [add_worker() for _ in range(2)]
+    ray_cluster.wait_for_nodes()
+    nodes = [ray_cluster.head_node, *workers]
+    assert {n.node_ip_address for n in nodes} == {"127.0.0.1"}  # loopback only
+    logdir = tmp_path / "run"
+    job = "rllock-multinode-" + tmp_path.name[-8:]
+    command = [RAY, "job", "submit", "--address", api, "--working-dir", ".", "--submission-id", job]
+    # Validations and a learner stepping flat out would take the cores the actors need here.
+    flags = tiny_flags(
+        selfplay=SelfPlayConfig(actors=2, episodes_per_batch=4), validate_minutes=10.0, replay_ratio=1.0
+    )
+    train = [sys.executable, "cluster/train_job.py", *flags, "--minutes", "4", "--logdir", str(logdir)]
+    submitted = subprocess.run(
+        [*command, "--no-wait", "--", *train], cwd=ROOT, capture_output=True, text=True
+    )
+    assert submitted.returncode == 0, submitted.stdout + submitted.stderr
+    client = JobSubmissionClient(api)
+
+    def logs() -> str:
+        return subprocess.run(
+            [RAY, "job", "logs", "--address", api, job], capture_output=True, text=True
+        ).stdout
+
+    # Placement: an actor on each worker node, the replay buffer on the driver's node.
+    worker_ids = {w.node_id for w in workers}
+    _wait_for("a self-play actor on each worker node", lambda: _actor_nodes(api) == worker_ids, 120, logs)
+    driver = client.get_job_info(job).driver_node_id
+    assert driver == ray_cluster.head_node.node_id
+    assert _actor_nodes(api, "ReplayBuffer") == {driver}
+    _wait_for("a learner step", lambda: _steps(logdir), 120, logs)
+
+    # A worker node dies (SIGKILL to its processes): the learner keeps stepping on the other.
+    ray_cluster.remove_node(workers[1], allow_graceful=False)
+    lost = f"node {workers[1].node_id[:8]} (127.0.0.1) was lost"
+    _wait_for("the run to notice the lost node", lambda: lost in logs(), 90, logs)
+    noticed = _steps(logdir)[-1]
+    _wait_for("learner steps after the node loss", lambda: _steps(logdir)[-1] >= noticed + 10, 90, logs)
+
+    # A node joins: the actor that lost its node restarts there.
+    joined = add_worker()
+    _wait_for("the actor restarted on the new node", lambda: joined.node_id in _actor_nodes(api), 60, logs)
+    _wait_for("its first batch", lambda: f"restarted on node {joined.node_id[:8]}" in logs(), 90, logs)
+
+    # `ray job stop`: SIGTERM, a checkpoint at the signal, the resume command.
+    before = _steps(logdir)[-1]
+    stopped = _run([RAY, "job", "stop", "--address", api, job])
+    assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+    assert client.get_job_status(job) == JobStatus.STOPPED
+    text = logs()
+    assert "SIGTERM: saving a checkpoint" in text and "Traceback" not in text
+    step = int(text.split("stopped by SIGTERM at learner step ")[1].split(";")[0])
+    assert step >= before and _steps(logdir)[-1] == step
+    assert (logdir / "replay.npz").exists() and list(logdir.glob("events.out.tfevents.*"))
