@@ -61,6 +61,9 @@ def cluster(monkeypatch) -> Iterator[tuple]:
         "include_dashboard": True,
         "dashboard_host": "127.0.0.1",
         "dashboard_port": port,
+        # The head declares a silent node dead after 3 missed health checks a second apart, not Ray's
+        # default 5 of 3 s each: the same path, in a test-sized time.
+        "_system_config": {"health_check_period_ms": 1000, "health_check_failure_threshold": 3},
     }
     folders: list[str] = []
 
