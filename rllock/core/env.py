@@ -111,9 +111,12 @@ def rejections(task: Task, state: State, *, seed: int, num_samples: int) -> tupl
     return len(raw), {name: int(((passed & bit) == 0).sum()) for bit, name in CHECK_NAMES.items()}
 
 
-def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) -> np.ndarray:
-    """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n]."""
-    accepted, _ = sampler.sample_and_check(
+def sample_accepted(
+    task: Task, state: State, *, seed: int, num_samples: int, closed_share: float = 0.0
+) -> np.ndarray:
+    """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n].
+    A share `closed_share` of the raw chunks comes from the closed proposal (`compiled_sampler`)."""
+    accepted, _ = sampler.sample_and_check_mixed(
         task.topology.arrays,
         state.labels,
         state.placed + 1,
@@ -121,6 +124,7 @@ def sample_accepted(task: Task, state: State, *, seed: int, num_samples: int) ->
         num_samples,
         task.removal == "path",
         seed,
+        closed_share,
     )
     return accepted
 

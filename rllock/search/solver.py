@@ -39,10 +39,35 @@ class SearchConfig:
     children: int = 8
     """Distinct accepted chunks kept per node (tried in random order)."""
     restart_base: int = 64
-    """Node expansions per unit of the Luby restart schedule."""
+    """Node expansions per unit of the Luby restart schedule (at least)."""
+    restart_per_piece: int = 4
+    """The Luby unit is at least this many expansions per piece to place: a deep search (K = 60-100)
+    needs hundreds of expansions only to walk down once with lookahead."""
+    closed_share: float | None = None
+    """Share of the raw chunks drawn by the closed proposal (`compiled_sampler`), which grows chunks
+    that slide out along one direction, so that big pieces are removable; the rest grow uniformly from
+    the frontier. None: by piece size n, 0 below `closed_from`, 1/2 up to `closed_only_from`, then 1.
+    Measured (seed 0, one core): frontier growth alone finds nothing on desia-bunny K=10-30 (n >= 32)
+    and is faster on 5^3-6^3 cubes (n = 9-10); in between, half of each did best (desia-bunny K=40/60,
+    mario K=30, desia-dog K=40)."""
+    closed_from: int = 12
+    """The piece size n from which `closed_share=None` draws closed-proposal chunks."""
+    closed_only_from: int = 32
+    """The piece size n from which `closed_share=None` draws closed-proposal chunks only."""
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
+
+    def share_for(self, task: Task) -> float:
+        """The share of closed-proposal chunks for `task`."""
+        if self.closed_share is not None:
+            return self.closed_share
+        n = task.piece_size
+        return 1.0 if n >= self.closed_only_from else 0.5 if n >= self.closed_from else 0.0
+
+    def restart_unit(self, placed: int) -> int:
+        """Node expansions per unit of the Luby schedule for a search to `placed` pieces."""
+        return max(self.restart_base, self.restart_per_piece * placed)
 
 
 @dataclass(frozen=True)
@@ -102,6 +127,7 @@ def _dfs(
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
     PROGRESS_EVERY seconds."""
     expansions = 0
+    share = config.share_for(task)
 
     def sample(state: State) -> tuple[np.ndarray, int]:
         nonlocal expansions
@@ -113,7 +139,9 @@ def _dfs(
             stats.reported = now
             report(stats)
         seed = int(rng.integers(1 << 31))
-        accepted = sample_accepted(task, state, seed=seed, num_samples=config.samples_per_node)
+        accepted = sample_accepted(
+            task, state, seed=seed, num_samples=config.samples_per_node, closed_share=share
+        )
         return distinct_subset(accepted, config.children, seed), len(accepted)
 
     def children_of(state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
@@ -170,7 +198,7 @@ def search(
     while time.monotonic() < deadline and not stop():
         restart += 1
         stats.restarts += 1
-        budget = config.restart_base * luby(restart)
+        budget = config.restart_unit(task.pieces - 1) * luby(restart)
         state, expansions = _dfs(task, rng, config, budget, deadline, task.pieces - 1, stats, stop, report)
         used += expansions
         if state is None:
@@ -196,7 +224,7 @@ def reach_depth(
     while time.monotonic() < deadline:
         restart += 1
         state, _ = _dfs(
-            task, rng, config, config.restart_base * luby(restart), deadline, placed, SearchStats()
+            task, rng, config, config.restart_unit(placed) * luby(restart), deadline, placed, SearchStats()
         )
         if state is not None:
             return state
