@@ -14,8 +14,8 @@ from orchestration.bench.scaling import PRESETS, fit_to_machine
 def test_the_plan_fits_the_machine_it_runs_on():
     workstation = PRESETS["workstation"]
     assert fit_to_machine(workstation, 16).actors == (1, 4, 8, 15)  # the workstation runs it all
-    assert fit_to_machine(workstation, 2).actors == (1,)  # one core stays with the learner
-    assert fit_to_machine(workstation, 6).actors == (1, 4, 5)  # the largest that fits is kept
+    assert fit_to_machine(workstation, 2).actors == (1, 2)  # the largest that fits is kept
+    assert fit_to_machine(workstation, 6).actors == (1, 4, 6)
     # three nodes need two worker nodes with a core each
     assert fit_to_machine(PRESETS["small"], 2).nodes == (1, 3)
     assert fit_to_machine(PRESETS["small"], 1).nodes == (1,)
@@ -25,8 +25,8 @@ def test_the_plan_fits_the_machine_it_runs_on():
 def test_the_workstation_preset_runs_small_on_this_machine_over_one_and_three_nodes():
     small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2"]
     code, out, err = run_cli(
-        "bench", "scaling", "--preset", "workstation", *small, "--nodes", "1,3", "--seconds", "3",
-        "--learner-steps", "3", "--json", timeout=400,
+        "bench", "scaling", "--preset", "workstation", *small, "--actors", "2", "--nodes", "1,3",
+        "--seconds", "3", "--learner-steps", "3", "--json", timeout=400,
     )  # fmt: skip
     assert code == 0, out + err
     report = json.loads(out)

@@ -253,6 +253,45 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_shapes(args: argparse.Namespace) -> int:
+    from orchestration.bench.shapes import (
+        PIECES,
+        SHAPES,
+        bench_shapes,
+        format_shapes_table,
+        rows_json,
+        shape_tasks,
+    )
+
+    def listed(text: str, flag: str, choices: tuple[str, ...] | None = None) -> list[str]:
+        items = [t.strip() for t in text.split(",") if t.strip()]
+        bad = [t for t in items if choices is not None and t not in choices]
+        if not items or bad:
+            raise RLLockError(f"{flag}: expected a comma-separated list of {', '.join(choices or ())}")
+        return items
+
+    arms = listed(args.arms, "--arms", ("solver", "general"))
+    removals = list(REMOVAL_MODES) if args.removal == "both" else [args.removal]
+    shapes = listed(args.shapes, "--shapes") if args.shapes else list(SHAPES)
+    tasks = shape_tasks(shapes, args.mesh, list(_counts(args.resolutions, "--resolutions")))
+    rows = bench_shapes(
+        tasks,
+        list(_counts(args.pieces, "--pieces") if args.pieces else PIECES),
+        removals=removals,
+        arms=arms,
+        time_limit=args.time_limit,
+        seed=args.seed,
+        batch=args.batch,
+        simulations=args.simulations,
+    )
+    if args.json:
+        sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "rows": rows_json(rows)}) + "\n")
+    else:
+        command = "rllock " + " ".join(sys.argv[1:])
+        sys.stdout.write(format_shapes_table(rows, arms, command, args.time_limit))
+    return 0
+
+
 def add_table_bench_args(p: argparse.ArgumentParser, unit: str) -> None:
     """The paper's protocol per `unit` (arm or run) and the table's outputs, for bench paper and ablation."""
     add_protocol_args(p, count=5, time_limit=300.0, per=unit)
@@ -323,6 +362,26 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--learner-steps", type=int, help="timed steps of the learner alone, per platform")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_scaling)
+
+    p = bench.add_parser(
+        "shapes", help="large shapes swept over K: time to the first valid assembly, solver and general"
+    )
+    p.add_argument(
+        "--shapes",
+        default=None,
+        help="comma-separated shape names (default: desia-bunny, desia-dog, mario, bunny, spider)",
+    )
+    p.add_argument("--mesh", default=None, help="an .stl/.obj model to add, at each of --resolutions")
+    p.add_argument("--resolutions", default="12,16,20", help="the mesh's resolutions")
+    p.add_argument("--pieces", default=None, help="the K sweep (default 10,20,...,100; K > N skipped)")
+    p.add_argument("--removal", choices=(*REMOVAL_MODES, "both"), default="straight")
+    p.add_argument("--arms", default="solver,general", help="solver, general, or both (comma-separated)")
+    p.add_argument("--time-limit", type=positive_float, default=300.0, help="seconds per arm and task")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=int, default=16, help="general's lockstep episodes per round")
+    add_simulations_arg(p, " for general")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_shapes)
 
 
 def _add_tables(bench: argparse._SubParsersAction) -> None:

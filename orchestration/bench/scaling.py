@@ -54,7 +54,7 @@ class ScalingPlan:
 
 
 PRESETS = {
-    # Runs in about 3 minutes on 2 cores: 1 and 2 actors, on one node and on three.
+    # Runs in about 4 minutes on 2 cores: 1 and 2 actors, on one node and on three.
     "small": ScalingPlan("cube4", 7, 64, 4, actors=(1, 2), nodes=(1, 3), seconds=20, learner_steps=30),
     # What a 16-core GPU workstation should report, in under 8 minutes there: the paper's search (256
     # simulations) on 6^3 K=25 with 1 to 15 actors (one core stays with the learner), 2 episodes a batch
@@ -66,10 +66,10 @@ PRESETS = {
 
 
 def fit_to_machine(plan: ScalingPlan, cores: int) -> ScalingPlan:
-    """The plan on a machine with `cores`: actor counts beyond the cores less the learner's one are
-    dropped (the largest that fits is kept), and so are node counts that would leave a node no core."""
-    most = max(1, cores - 1)
-    actors = tuple(sorted({min(n, most) for n in plan.actors}))
+    """The plan on a machine with `cores`: actor counts beyond the cores are dropped (the largest that
+    fits is kept; the learner shares the cores with them, as in training), and so are node counts that
+    would leave a worker node no core."""
+    actors = tuple(sorted({min(n, cores) for n in plan.actors}))
     nodes = tuple(k for k in plan.nodes if k == 1 or k - 1 <= cores)
     return replace(plan, actors=actors, nodes=nodes or (1,))
 
@@ -226,16 +226,17 @@ def format_scaling(result: dict) -> str:
         f"scaling: {plan['shape']} K={plan['pieces']}, {plan['simulations']} simulations, "
         f"{plan['episodes_per_batch']} episodes a batch, {result['cores']} cores, "
         f"{plan['seconds']:g} s windows",
-        "| nodes | actors | on nodes | episodes/s | x vs 1 actor | of linear | learner steps/s "
-        "| KiB/episode | broadcast ms | empty call ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| nodes | actors | on nodes | CPUs per actor | episodes/s | x vs fewest actors | of linear "
+        "| learner steps/s | KiB/episode | broadcast ms | empty call ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         one = next(x for x in rows if x["nodes"] == r["nodes"])  # the fewest actors on these nodes
         speedup = r["episodes_per_sec"] / max(one["episodes_per_sec"], 1e-12)
         linear = speedup * one["actors"] / r["actors"]
         lines.append(
-            f"| {r['nodes']} | {r['actors']} | {r['actor_nodes']} | {r['episodes_per_sec']:.3f} | "
+            f"| {r['nodes']} | {r['actors']} | {r['actor_nodes']} | {r['cpus_per_actor']:g} | "
+            f"{r['episodes_per_sec']:.3f} | "
             f"x{speedup:.2f} | {linear:.0%} | {r['learner_steps_per_sec']:.1f} | "
             f"{r['bytes_per_episode'] / 1024:.1f} | {r['broadcast_ms']:.1f} | {r['call_ms']:.1f} |"
         )

@@ -52,7 +52,7 @@ def kept(command: str, count: int, where: object) -> str:
 
 def general_serves(task: Task) -> bool:
     """Whether the shipped multi-task checkpoint `general` can generate for `task` (the check
-    `generate --checkpoint general` makes: its canvas, removal mode and checkers)."""
+    `generate --checkpoint general` makes: a canvas it plays on, its removal mode and checkers)."""
     from rllock.errors import RLLockError
     from rllock.files.checkpoint import SHIPPED, read_metadata, shipped_names
     from rllock.search.inference import check_fits

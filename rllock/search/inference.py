@@ -59,12 +59,29 @@ def load_network(source: str | Path | ckpt.Checkpoint) -> tuple[ckpt.Checkpoint,
     return checkpoint, net, params
 
 
-def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> None:
-    """A task a multi-task checkpoint can serve: on its canvas, with its removal mode and checkers."""
-    fit_canvas(task, NetConfig(canvas=saved.canvas), f"checkpoint {where}")
+MAX_CANVAS = 16
+"""The largest canvas a multi-task checkpoint plays on beyond its own: the U-Net's cost per evaluation
+grows with the canvas's C^3 voxels (docs/benchmarks.md)."""
+
+
+def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> int:
+    """The canvas on which a multi-task checkpoint plays `task`, a task it can serve (its removal mode and
+    checkers): its own canvas where the shape fits, else the smallest larger one that does, up to
+    MAX_CANVAS. The U-Net is convolutional and its value reads a mean over the canvas, so its weights do
+    not depend on the side; docs/benchmarks.md measures how well they carry over to larger canvases."""
     for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
         if saved.task.get(key) != here:
             raise RLLockError(f"checkpoint {where} was made for {key} {saved.task.get(key)!r}, not {here!r}")
+    if max(task.topology.dims) <= saved.canvas:
+        return saved.canvas
+    canvas = fit_canvas(task, dataclasses.replace(saved.config.net, canvas=None)).canvas
+    assert canvas is not None
+    if canvas > MAX_CANVAS:
+        raise RLLockError(
+            f"shape {task.shape_name} {task.topology.dims} does not fit the largest canvas checkpoint "
+            f"{where} plays on ({MAX_CANVAS}^3)"
+        )
+    return canvas
 
 
 def load_policy(
@@ -72,7 +89,8 @@ def load_policy(
 ) -> Policy:
     """The policy in a checkpoint (a run's log directory: its best checkpoint; a shipped name; or a
     checkpoint already opened). A single-task checkpoint plays its own task; `expect`, a task identity,
-    must match it. A multi-task checkpoint plays `task`, which must fit its canvas."""
+    must match it. A multi-task checkpoint plays `task` (on a larger canvas than its own where the shape
+    needs one: `check_fits`)."""
     checkpoint, net, params = load_network(source)
     meta, step_dir = checkpoint.metadata, checkpoint.step_dir
     if meta.multitask:
@@ -81,7 +99,16 @@ def load_policy(
                 f"checkpoint {step_dir} serves many tasks ({meta.task['tasks']}): name one with "
                 "--shape and --pieces"
             )
-        check_fits(task, meta, step_dir)
+        canvas = check_fits(task, meta, step_dir)
+        if canvas != net.canvas:
+            log.info(
+                "%s was trained on a %d^3 canvas; it plays %s on %d^3 (its weights fit any side)",
+                source if isinstance(source, str) else step_dir,
+                net.canvas,
+                task.shape_name,
+                canvas,
+            )
+            net = dataclasses.replace(net, canvas=canvas)
     else:
         if expect is not None:
             ckpt.check_same_task(meta.task, expect, step_dir)

@@ -1,0 +1,163 @@
+"""`rllock bench shapes`: large shapes swept over K, the time to the first valid assembly.
+
+For each shape (DESIA's bunny and dog, the high-level mario, bunny and spider, and a mesh at the
+resolutions asked for) and each K of the sweep that the shape allows, each arm runs until its first
+valid assembly or the time limit: the search solver, and `general` zero-shot (on a canvas larger than
+its own where the shape needs one: `rllock.search.inference.check_fits`). A task with a proof that it
+has no assembly (`rllock.core.feasibility`) is marked so without searching. Times are wall clock from
+the start of the arm, `general`'s loading and compiling included.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+
+from orchestration.bench.paper import policy_arm, warm_process
+from rllock.core.env import Task, make_task
+from rllock.core.feasibility import impossibility
+from rllock.core.verifier import verify_labels
+from rllock.errors import RLLockError
+from rllock.search.inference import load_policy, with_simulations
+from rllock.search.solver import SearchStats, search
+
+log = logging.getLogger(__name__)
+
+SHAPES = ("desia-bunny", "desia-dog", "mario", "bunny", "spider")
+PIECES = tuple(range(10, 101, 10))
+ARMS = ("solver", "general")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One arm on one task: seconds to the first valid assembly, or None within `limit`."""
+
+    seconds: float | None
+    limit: float
+    placed: int | None = None  # the solver's best: pieces placed in its deepest state
+    impossible: str | None = None  # the reason a task provably has no assembly
+
+    def text(self, pieces: int) -> str:
+        if self.impossible:
+            return "impossible"
+        if self.seconds is not None:
+            return f"{self.seconds:.1f}"
+        best = f" (best {self.placed}/{pieces - 1})" if self.placed is not None else ""
+        return f"none in {self.limit:.0f}{best}"
+
+
+@dataclass(frozen=True)
+class ShapeTask:
+    shape: str  # a shape name or a mesh path
+    label: str  # the shape's name in the table
+    resolution: int | None = None
+
+    def make(self, pieces: int, removal: str) -> Task:
+        return make_task(self.shape, pieces, removal, name=self.label, resolution=self.resolution)
+
+
+def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> list[ShapeTask]:
+    """The named shapes, then the mesh at each resolution."""
+    out = [ShapeTask(s, s) for s in shapes]
+    if mesh:
+        out += [ShapeTask(mesh, f"mesh@{r}", r) for r in resolutions]
+    return out
+
+
+def solver_cell(task: Task, time_limit: float, seed: int) -> Cell:
+    stats = SearchStats()
+    start = time.perf_counter()
+    for found in search(task, seed=seed, time_limit=time_limit, stats=stats):
+        seconds = time.perf_counter() - start
+        if not verify_labels(found.labels, task.removal).valid:
+            raise AssertionError(f"the search returned an assembly of {task.shape_name} the verifier rejects")
+        return Cell(seconds, time_limit)
+    return Cell(None, time_limit, placed=stats.placed)
+
+
+def general_cell(task: Task, time_limit: float, seed: int, batch: int, simulations: int | None) -> Cell:
+    def load():
+        return with_simulations(load_policy("general", task=task), simulations)
+
+    try:
+        arm, _ = policy_arm(load, count=1, batch=batch, time_limit=time_limit, seed=seed)
+    except RLLockError as exc:  # e.g. a shape beyond the largest canvas general plays on
+        log.warning("general on %s K=%d: %s", task.shape_name, task.pieces, exc)
+        return Cell(None, time_limit)
+    return Cell(arm.seconds if arm.valid else None, time_limit)
+
+
+@dataclass(frozen=True)
+class Row:
+    shape: str
+    voxels: int
+    dims: tuple[int, ...]
+    pieces: int
+    removal: str
+    cells: dict[str, Cell]
+
+
+def bench_shapes(
+    tasks: list[ShapeTask],
+    pieces: list[int],
+    *,
+    removals: list[str],
+    arms: list[str],
+    time_limit: float,
+    seed: int,
+    batch: int,
+    simulations: int | None = None,
+) -> list[Row]:
+    """One row per shape, removal mode and K that the shape allows; `simulations` per decision for
+    `general` (None: as it was trained)."""
+    warm_process("cube4", 4)  # numba's cache and JAX's backend, once, before any arm is timed
+    rows = []
+    for shape in tasks:
+        for removal in removals:
+            for k in pieces:
+                try:
+                    task = shape.make(k, removal)
+                except RLLockError as exc:  # K beyond what N allows
+                    log.info("%s K=%d: %s", shape.label, k, exc)
+                    continue
+                reason = impossibility(task)
+                cells = {}
+                for arm in arms:
+                    if reason is not None:
+                        cells[arm] = Cell(None, time_limit, impossible=reason)
+                    elif arm == "solver":
+                        cells[arm] = solver_cell(task, time_limit, seed)
+                    else:
+                        cells[arm] = general_cell(task, time_limit, seed, batch, simulations)
+                row = Row(shape.label, task.size, task.topology.dims, k, removal, cells)
+                log.info(
+                    "%s K=%d %s: %s",
+                    shape.label,
+                    k,
+                    removal,
+                    ", ".join(f"{a} {c.text(k)}" for a, c in cells.items()),
+                )
+                rows.append(row)
+    return rows
+
+
+def format_shapes_table(rows: list[Row], arms: list[str], command: str, time_limit: float) -> str:
+    lines = [
+        f"    {command}",
+        "",
+        f"Seconds to the first valid assembly (each passed by the full verifier), or none within "
+        f"{time_limit:.0f} s (the solver's deepest state in brackets: pieces placed of K-1).",
+        "",
+        "| shape (voxels, box) | K | removal | " + " | ".join(arms) + " |",
+        "|---|---|---|" + "---|" * len(arms),
+    ]
+    for r in rows:
+        dims = "x".join(map(str, r.dims))
+        cells = " | ".join(r.cells[a].text(r.pieces) for a in arms)
+        lines.append(f"| {r.shape} ({r.voxels}, {dims}) | {r.pieces} | {r.removal} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
+def rows_json(rows: list[Row]) -> list[dict]:
+    return [{**asdict(r), "cells": {a: asdict(c) for a, c in r.cells.items()}} for r in rows]

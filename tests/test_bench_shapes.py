@@ -1,0 +1,48 @@
+"""`rllock bench shapes` and `general` beyond its 8^3 canvas."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from helpers import run_cli
+
+from rllock.core.env import make_task
+from rllock.core.verifier import verify_labels
+from rllock.errors import RLLockError
+from rllock.files.assembly import read_assembly
+from rllock.search.inference import MAX_CANVAS, generate, load_policy
+
+
+def test_general_plays_a_shape_larger_than_its_canvas_on_the_smallest_canvas_that_fits():
+    task = make_task("box:9x3x2", 3)  # 9 > 8: general's own 8^3 canvas is too small
+    policy = load_policy("general", task=task)
+    assert policy.net.canvas == 12  # the next multiple of the U-Net's level step
+    assert load_policy("general", task=make_task("cube5", 13)).net.canvas == 8  # its own where it fits
+    with pytest.raises(RLLockError, match=f"largest canvas .* plays on \\({MAX_CANVAS}\\^3\\)"):
+        load_policy("general", task=make_task(f"box:{MAX_CANVAS + 1}x2x2", 4))
+
+
+@pytest.mark.slow
+def test_general_generates_verified_assemblies_zero_shot_on_a_larger_canvas(tmp_path):
+    task = make_task("box:9x3x2", 3)
+    policy = load_policy("general", task=task)
+    result = generate(policy, count=1, batch=4, time_limit=120, seed=0, out=tmp_path, progress=False)
+    assert result.valid >= 1
+    labels, _ = read_assembly(next(tmp_path.glob("*/assembly.json")))
+    assert labels.shape == (9, 3, 2) and verify_labels(labels, "straight").valid
+
+
+@pytest.mark.slow
+def test_bench_shapes_sweeps_k_and_says_impossible_none_or_seconds():
+    code, out, err = run_cli(
+        "bench", "shapes", "--shapes", "box:9x3x2,box:6x6x1", "--pieces", "3,200", "--arms", "solver,general",
+        "--time-limit", "60", "--simulations", "8", "--batch", "4", "--json", timeout=400,
+    )  # fmt: skip
+    assert code == 0, out + err
+    rows = {(r["shape"], r["pieces"]): r["cells"] for r in json.loads(out)["rows"]}
+    assert set(rows) == {("box:9x3x2", 3), ("box:6x6x1", 3)}  # K = 200 > N: skipped
+    flat = rows[("box:6x6x1", 3)]  # one voxel thick: no piece can be locked along z
+    assert flat["solver"]["impossible"] and flat["general"]["impossible"]
+    solved = rows[("box:9x3x2", 3)]
+    assert 0 < solved["solver"]["seconds"] < 60 and 0 < solved["general"]["seconds"] < 60
