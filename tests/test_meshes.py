@@ -278,15 +278,32 @@ def test_rows_of_points_in_polygons_match_matplotlib():
         np.testing.assert_array_equal(_inside_rows(contours, xs, ys), expected.reshape(37, 41))
 
 
+def _finned() -> trimesh.Trimesh:
+    """A closed box with a fin on one edge: that edge has three faces, and the fin's open edges form no
+    loop that a cap could close."""
+    box = trimesh.creation.box()
+    a, b = box.edges_unique[0]
+    tip = len(box.vertices)
+    faces = np.vstack([box.faces, [[a, b, tip]]])
+    return trimesh.Trimesh(np.vstack([box.vertices, [[3.0, 3.0, 3.0]]]), faces)
+
+
+def test_holes_in_a_scanned_surface_are_closed_with_flat_caps(tmp_path, caplog):
+    box = trimesh.creation.box(extents=[4, 2, 2])
+    top_and_bottom = np.abs(box.triangles_center[:, 2]) > 0.99
+    open_box = trimesh.Trimesh(box.vertices, box.faces[~top_and_bottom], process=False)
+    assert not open_box.is_watertight
+    open_box.export(tmp_path / "open.stl")
+    with caplog.at_level(logging.WARNING):
+        grid = load_shape(str(tmp_path / "open.stl"), resolution=4)
+    assert grid.shape == (4, 2, 2) and grid.all()  # each cap closes the box where its faces were
+    assert "2 hole(s)" in caplog.text
+
+
 @pytest.mark.parametrize(
     "make,needle",
     [
-        (
-            lambda p: trimesh.Trimesh(
-                trimesh.creation.box().vertices, trimesh.creation.box().faces[:-2]
-            ).export(p / "open.stl"),
-            "not watertight",
-        ),
+        (lambda p: _finned().export(p / "fin.stl"), "not watertight"),
         (lambda p: (p / "junk.stl").write_text("this is no mesh"), "no triangle mesh"),
         (lambda p: (p / "empty.obj").write_text(""), "no triangle mesh"),
     ],

@@ -158,9 +158,53 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
         raise RLLockError(f"cannot read mesh {path}: {exc}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise RLLockError(f"{path} holds no triangle mesh")
-    if not mesh.is_watertight:
-        raise RLLockError(f"mesh {path} is not watertight: filling its inside needs a closed surface")
-    return mesh
+    if mesh.is_watertight:
+        return mesh
+    capped, holes = _capped(mesh)
+    if capped is None or not capped.is_watertight:
+        raise RLLockError(
+            f"mesh {path} is not watertight: filling its inside needs a closed surface, and its open edges "
+            "do not form holes that flat caps can close"
+        )
+    log.warning("mesh %s had %d hole(s) in its surface: closed each with a flat cap", path, holes)
+    return capped
+
+
+def _capped(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh | None, int]:
+    """(`mesh` with each hole closed by a fan of triangles to the hole's centroid, the number of holes),
+    or (None, 0) when its open edges (edges of one face) do not form simple loops. Scanned models, such
+    as the Stanford bunny, come with holes where the scanner saw nothing."""
+    mesh = mesh.copy()
+    mesh.merge_vertices()
+    edges, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    open_edges = {(int(a), int(b)) for a, b in edges[counts == 1]}
+    # Each open edge, directed against its face's winding, so that the caps wind as the surface does.
+    after: dict[int, int] = {}
+    for a, b in mesh.edges:  # face edges, in winding order
+        if (min(a, b), max(a, b)) in open_edges:
+            if int(b) in after:  # two holes meet at a vertex: not a simple loop
+                return None, 0
+            after[int(b)] = int(a)
+    vertices, faces = [np.asarray(mesh.vertices)], [np.asarray(mesh.faces)]
+    done: set[int] = set()
+    holes = 0
+    for start in after:
+        if start in done:
+            continue
+        loop, v = [], start
+        while v not in done:
+            done.add(v)
+            loop.append(v)
+            v = after.get(v, -1)
+            if v == -1:  # an open path, not a loop
+                return None, 0
+        if v != start:
+            return None, 0
+        centre = len(mesh.vertices) + holes
+        vertices.append(np.asarray(mesh.vertices)[loop].mean(axis=0, keepdims=True))
+        faces.append(np.array([[loop[i], loop[(i + 1) % len(loop)], centre] for i in range(len(loop))]))
+        holes += 1
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces)), holes
 
 
 def _solid(mesh: trimesh.Trimesh, path: Path) -> m3.Manifold:
