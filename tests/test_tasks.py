@@ -288,8 +288,10 @@ def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_neve
     policy = load_policy(tmp_path / "run", task=make_task("cube3", 3))
     with pytest.raises(RLLockError, match="runs no search"):
         with_simulations(dataclasses.replace(policy, method="ppo"), 8)
-    with pytest.raises(RLLockError, match="does not fit"):
-        load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3))
+    # beyond its 4^3 canvas it plays on the smallest that fits, up to MAX_CANVAS
+    assert load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3)).net.canvas == 6  # step 2
+    with pytest.raises(RLLockError, match="does not fit the largest canvas"):
+        load_policy(tmp_path / "run", task=make_task("box:17x3x2", 3))
 
 
 def test_a_multitask_checkpoint_ships_and_lists_its_task_groups(tmp_path):
