@@ -26,7 +26,7 @@ def test_the_workstation_preset_runs_small_on_this_machine_over_one_and_three_no
     small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2"]
     code, out, err = run_cli(
         "bench", "scaling", "--preset", "workstation", *small, "--actors", "2", "--nodes", "1,3",
-        "--seconds", "3", "--learner-steps", "3", "--json", timeout=400,
+        "--seconds", "2", "--learner-steps", "2", "--json", timeout=400,
     )  # fmt: skip
     assert code == 0, out + err
     report = json.loads(out)

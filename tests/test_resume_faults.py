@@ -59,7 +59,8 @@ def test_sigkill_then_resume_continues_and_falls_back_past_a_corrupted_checkpoin
     for f in (newest / "state").rglob("*"):
         if f.is_file() and f.parent.name == "d":
             f.write_bytes(b"\0" * 9)
-    proc = _train("--resume", str(logdir), "--minutes", "1")
+    # It ends on its step limit, a few steps past the kill, not on the minute.
+    proc = _train("--resume", str(logdir), "--minutes", "1", "--max-learner-steps", str(killed_at[-1] + 5))
     out, _ = proc.communicate(timeout=300)
     assert proc.returncode == 0, out
     assert "falling back" in out and f"resuming {logdir} at learner step {killed_at[-2]}" in out
