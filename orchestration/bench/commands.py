@@ -272,7 +272,8 @@ def cmd_bench_shapes(args: argparse.Namespace) -> int:
 
     arms = listed(args.arms, "--arms", ("solver", "general"))
     removals = list(REMOVAL_MODES) if args.removal == "both" else [args.removal]
-    shapes = listed(args.shapes, "--shapes") if args.shapes else list(SHAPES)
+    # --mesh alone benches the mesh; otherwise the named shapes, by default the five large ones
+    shapes = listed(args.shapes, "--shapes") if args.shapes else [] if args.mesh else list(SHAPES)
     tasks = shape_tasks(shapes, args.mesh, list(_counts(args.resolutions, "--resolutions")))
     rows = bench_shapes(
         tasks,
