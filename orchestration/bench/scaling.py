@@ -21,7 +21,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import jax
 import numpy as np
@@ -33,7 +33,6 @@ from orchestration.bench.selfplay import drain, start_buffer, timed_window
 from orchestration.pool import ActorPool, largest_node_cpus, plan_layout
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.core.env import Task, make_task
-from rllock.errors import RLLockError
 from rllock.search.network import fit_canvas
 
 log = logging.getLogger(__name__)
@@ -122,7 +121,9 @@ def _broadcast_ms(pool: ActorPool, params: dict, repeats: int) -> tuple[float, f
     return 1000 * statistics.median(fetch), 1000 * statistics.median(call)
 
 
-def _measure(task: Task, net: NetConfig, mcts: MCTSConfig, plan: ScalingPlan, actors: int, learner: Learner):
+def _measure(
+    task: Task, net: NetConfig, mcts: MCTSConfig, plan: ScalingPlan, actors: int, learner: Learner
+) -> tuple[dict, dict]:
     """One row: `actors` actors on the cluster Ray is connected to, the learner stepping beside them.
     Returns (the row, a replay sample for the learner-alone timing)."""
     resources = ray.cluster_resources()
@@ -191,8 +192,6 @@ def bench_scaling(plan: ScalingPlan, cores: int | None = None) -> dict:
     """Every row of `plan` (fitted to this machine's cores), then the learner alone."""
     cores = cores or os.cpu_count() or 1
     plan = fit_to_machine(plan, cores)
-    if plan.nodes != tuple(sorted(plan.nodes)):
-        raise RLLockError("--nodes must be increasing")
     task = make_task(plan.shape, plan.pieces)
     net = fit_canvas(task, NetConfig())
     mcts = MCTSConfig(simulations=plan.simulations)
@@ -212,7 +211,7 @@ def bench_scaling(plan: ScalingPlan, cores: int | None = None) -> dict:
                     row["learner_steps_per_sec"],
                 )
     return {
-        "plan": plan.__dict__,
+        "plan": asdict(plan),
         "cores": cores,
         "canvas": net.canvas,
         "rows": rows,
