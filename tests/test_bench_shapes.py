@@ -46,3 +46,9 @@ def test_bench_shapes_sweeps_k_and_says_impossible_none_or_seconds():
     assert flat["solver"]["impossible"] and flat["general"]["impossible"]
     solved = rows[("box:9x3x2", 3)]
     assert 0 < solved["solver"]["seconds"] < 60 and 0 < solved["general"]["seconds"] < 60
+
+
+def test_bench_shapes_refuses_an_unknown_shape_in_one_line():
+    code, out, err = run_cli("bench", "shapes", "--shapes", "nosuch", "--arms", "solver")
+    assert code == 2 and out == "" and err.startswith("rllock: error: unknown shape 'nosuch'")
+    assert len(err.strip().splitlines()) == 1

@@ -14,9 +14,12 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
 from orchestration.bench.paper import policy_arm, warm_process
 from rllock.core.env import Task, make_task
 from rllock.core.feasibility import impossibility
+from rllock.core.shapes import load_shape
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.search.inference import load_policy, with_simulations
@@ -53,8 +56,10 @@ class ShapeTask:
     label: str  # the shape's name in the table
     resolution: int | None = None
 
-    def make(self, pieces: int, removal: str) -> Task:
-        return make_task(self.shape, pieces, removal, name=self.label, resolution=self.resolution)
+    def load(self) -> np.ndarray:
+        """The shape's voxels, loaded (a mesh voxelized) once for its whole sweep; a bad shape is an
+        error here."""
+        return load_shape(self.shape, self.resolution)
 
 
 def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> list[ShapeTask]:
@@ -114,13 +119,14 @@ def bench_shapes(
     warm_process("cube4", 4)  # numba's cache and JAX's backend, once, before any arm is timed
     rows = []
     for shape in tasks:
+        grid = shape.load()
+        voxels = int(grid.sum())
         for removal in removals:
             for k in pieces:
-                try:
-                    task = shape.make(k, removal)
-                except RLLockError as exc:  # K beyond what N allows
-                    log.info("%s K=%d: %s", shape.label, k, exc)
+                if k > voxels:
+                    log.info("%s K=%d: skipped, K is over the shape's %d voxels", shape.label, k, voxels)
                     continue
+                task = make_task(grid, k, removal, name=shape.label)
                 reason = impossibility(task)
                 cells = {}
                 for arm in arms:
