@@ -29,7 +29,6 @@ log = logging.getLogger(__name__)
 
 SHAPES = ("desia-bunny", "desia-dog", "mario", "bunny", "spider")
 PIECES = tuple(range(10, 101, 10))
-ARMS = ("solver", "general")
 
 
 @dataclass(frozen=True)
