@@ -93,6 +93,7 @@ class PlayStats:
     group: int = -1  # multi-task runs: the task group the batch drew
     pieces: int = 0  # the batch's K
     sent_bytes: int = 0  # the episodes' pickled size, as Ray ships them to the replay buffer
+    canvas: int = 0  # multi-task runs: the canvas side the batch was played on
 
 
 def evaluate(
@@ -119,9 +120,9 @@ class SelfPlayWorker:
         self.task = spec.task.make() if isinstance(spec.task, TaskSpec) else None
         # PPO runs no search: its decisions cost one network call each, not simulations.
         self.simulations_per_decision = 0 if spec.method == "ppo" else spec.mcts.simulations
-        # Compiled searches by action shape (M, n): a multi-task run meets a few piece sizes again and
-        # again, and compiling costs seconds.
-        self.compiled: dict[tuple[int, int], Sequence[Player]] = {}
+        # Compiled searches by action shape (M, n) and canvas: a multi-task run meets a few piece sizes
+        # again and again, and compiling costs seconds.
+        self.compiled: dict[tuple[tuple[int, int], int], Sequence[Player]] = {}
         self.key = jax.random.PRNGKey(seed)
         self.seed = seed
         self.params: dict | None = None
@@ -131,26 +132,29 @@ class SelfPlayWorker:
     def set_weights(self, params, version: int) -> None:
         self.params, self.version = params, version
 
-    def searchers(self, task: Task) -> Sequence[Player]:
+    def searchers(self, task: Task, canvas: int) -> Sequence[Player]:
         spec = self.spec
-        shape = space(spec.method).action_shape(task, spec.mcts)
-        if shape not in self.compiled:
-            self.compiled[shape] = players(spec.method, spec.net, spec.mcts, task, spec.episodes, spec.groups)
-        return self.compiled[shape]
+        key = (space(spec.method).action_shape(task, spec.mcts), canvas)
+        if key not in self.compiled:
+            net = replace(spec.net, canvas=canvas)
+            self.compiled[key] = players(spec.method, net, spec.mcts, task, spec.episodes, spec.groups)
+        return self.compiled[key]
 
     def play(self) -> tuple[list[Episode], PlayStats]:
         assert self.params is not None, "set_weights first"
         self.key, sub = jax.random.split(self.key)
         times = TimeSplit()
         seed = derive_seed(self.seed, self.batches)
-        group, task = -1, self.task
+        group, task, canvas = -1, self.task, self.spec.net.canvas_side()
         if self.tasks is not None:
             group, task = self.tasks.draw(np.random.default_rng([seed, 7]))  # not the store's stream
+            canvas = self.tasks.groups[group].canvas
         assert task is not None
-        episodes, seconds = evaluate(self.searchers(task), self.params, task, sub, seed=seed, times=times)
+        searchers = self.searchers(task, canvas)
+        episodes, seconds = evaluate(searchers, self.params, task, sub, seed=seed, times=times)
         if self.tasks is not None:
-            canvas, n_max = self.tasks.canvas, self.tasks.max_piece_size()
-            episodes = [canvas_episode(task, e, canvas, n_max) for e in episodes]
+            store, n_max = self.tasks.store_canvas, self.tasks.max_piece_size()
+            episodes = [canvas_episode(task, e, store, n_max) for e in episodes]
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(
@@ -166,6 +170,7 @@ class SelfPlayWorker:
             times,
             group,
             task.pieces,
+            canvas=canvas if self.tasks is not None else 0,
         )
         return episodes, stats
 
@@ -195,7 +200,7 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(self.buffer.add_many.remote(episodes, stats.pieces))  # waits: bounded in-flight data
+        ray.get(self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas))  # waits: bounded in-flight data
         return replace(stats, sent_bytes=len(pickle.dumps(episodes, protocol=5)))
 
     def fetch(self, weights: list) -> int:

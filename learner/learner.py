@@ -104,6 +104,7 @@ class Learner:
         canvas, task_planes = self.net_config.canvas, self.net_config.task_planes
         assert canvas is not None
         if self.task is None:
+            canvas = int(sample.get("canvas", canvas))  # the batch's own canvas (learner.replay)
             if seed is not None and self.config.symmetries:
                 sample = augment_canvas(sample, canvas, seed)
             planes = encode_canvas(sample["labels"], sample["placed"], sample["pieces"], canvas, task_planes)

@@ -191,7 +191,7 @@ def _buffer_shape(
         assert task is not None
         return (task.size, *space(config.method).action_shape(task, config.mcts)), compact_dtypes(task)
     # canvas states (rllock.search.canvas)
-    return (tasks.canvas**3, config.mcts.candidates, tasks.max_piece_size()), (np.int8, np.int16)
+    return (tasks.store_canvas**3, config.mcts.candidates, tasks.max_piece_size()), (np.int8, np.int16)
 
 
 class _Run:
@@ -259,7 +259,12 @@ class _Run:
         buffer: Any = (
             ray.remote(num_cpus=0)(ReplayBuffer)
             .options(scheduling_strategy=on_driver_node())
-            .remote(self.config.buffer_capacity, *shape, *dtypes)
+            .remote(
+                self.config.buffer_capacity,
+                *shape,
+                *dtypes,
+                store_canvas=None if self.tasks is None else self.tasks.store_canvas,
+            )
         )
         snapshot = self.recorder.logdir / "replay.npz"
         if resume and snapshot.exists():

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import numpy as np
@@ -41,15 +41,16 @@ class Plan:
         seed = config.seed + 7
         if tasks is not None:
             chosen = tasks.validation_tasks(seed)
+            nets = [replace(config.net, canvas=group.canvas) for group in tasks.groups]
         elif task is not None:
-            chosen = [task]
+            chosen, nets = [task], [config.net]
         else:
             raise ValueError("a run needs a task or a task set")
         return Plan(
             tasks=tuple(chosen),
             searchers=tuple(
-                players(config.method, config.net, config.mcts, t, config.validation_episodes, 1)
-                for t in chosen
+                players(config.method, net, config.mcts, t, config.validation_episodes, 1)
+                for t, net in zip(chosen, nets)
             ),
             episodes=config.validation_episodes,
             seed=seed,

@@ -110,7 +110,8 @@ class TrainConfig:
     tasks: str | None = None
     """Multi-task training, one network for many tasks: task groups SHAPE:KLO-KHI separated by commas,
     e.g. cube4:6-9,box:6x5x4:8-12,random:60-200:6-20 (random:NLO-NHI: a fresh random shape of that
-    many voxels per draw; rllock.core.tasks). Replaces --shape and --pieces."""
+    many voxels per draw; rllock.core.tasks). A group ending in @C plays on a C^3 canvas of its own,
+    e.g. random:400-1000:30-80@16: one network for several canvases. Replaces --shape and --pieces."""
     init: str | None = None
     """Start from this checkpoint's network (a run's log directory or a shipped name, e.g. general:
     fine-tuning); its network size and input planes are used, and its canvas unless --canvas is given

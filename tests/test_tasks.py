@@ -43,7 +43,7 @@ from rllock.errors import RLLockError
 from rllock.files.assembly import read_assembly
 from rllock.files.checkpoint import find_step_dir, read_metadata
 from rllock.search import pretrained
-from rllock.search.canvas import augment_canvas, canvas_episode
+from rllock.search.canvas import augment_canvas, canvas_episode, crop_canvas
 from rllock.search.inference import load_network, load_policy, with_simulations
 from rllock.search.network import (
     TASK_SCALE,
@@ -78,11 +78,30 @@ def test_spec_parses_into_groups_on_the_papers_canvas():
         ("nosuchshape:4", "unknown shape"),
         ("cube9:10", "does not fit"),
         ("random:600:4", "exceed the 8\\^3 canvas"),
+        ("random:600-900:4@8", "exceed the 8\\^3 canvas"),
+        ("cube9:10@8", "does not fit the 8\\^3"),
+        ("cube4:6@10", "bad canvas '10'"),
+        ("cube4:6@x", "bad canvas 'x'"),
     ],
 )
 def test_bad_specs_are_one_line_errors(spec, message):
     with pytest.raises(RLLockError, match=message):
         parse_tasks(spec, canvas=8 if "cube9" in spec or "random" in spec else None)
+
+
+def test_groups_play_on_their_own_canvas_and_the_run_stores_on_the_largest():
+    tasks = parse_tasks("cube4:6-9,random:200-500:10-40@12,cube9:10@16")
+    assert [g.canvas for g in tasks.groups] == [8, 12, 16]
+    assert (tasks.canvas, tasks.store_canvas, tasks.canvases()) == (8, 16, (8, 12, 16))
+    assert tasks.identity()["canvases"] == [8, 12, 16] and tasks.identity()["canvas"] == 8
+    assert [t.shape_name for t in tasks.validation_tasks(0)][2] == "cube9"
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        g, task = tasks.draw(rng)
+        assert max(task.topology.dims) <= tasks.groups[g].canvas
+    # A random group on a larger canvas grows shapes the run's canvas could not hold.
+    big = parse_tasks("random:700-800:20@12", canvas=8)
+    assert big.canvas == 12 and big.draw(rng)[1].size >= 700
 
 
 def test_random_shapes_are_connected_compact_solids_of_the_asked_size():
@@ -242,13 +261,74 @@ def test_multitask_selfplay_fills_a_canvas_buffer_the_learner_trains_on():
     )
 
 
+def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on():
+    """Groups on a 4^3 and an 8^3 canvas: states are stored on 8^3, every batch comes from one canvas,
+    cropped to it, and the learner's planes equal the single-task encoding on that canvas; both kinds
+    of batch update the network (one network, two compiled shapes)."""
+    tasks = parse_tasks("box:4x3x2:3-4,cube3:3@8", canvas=4)
+    assert [g.canvas for g in tasks.groups] == [4, 8] and tasks.store_canvas == 8
+    net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
+    mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
+    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=4), seed=0)
+    worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
+    buffer = ReplayBuffer(400, 512, 4, tasks.max_piece_size(), store_canvas=8)
+    played = set()
+    for _ in range(6):
+        episodes, stats = worker.play()
+        played.add(stats.canvas)
+        assert all(e.labels.shape[1] == 512 for e in episodes)
+        buffer.add_many(episodes, stats.pieces, stats.canvas)
+    assert played == {4, 8} and {c for _, c in worker.compiled} == {4, 8}
+    learner = Learner(None, net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
+    seen = set()
+    for seed in range(12):
+        sample = buffer.sample(8, seed=seed, success_fraction=0.5)
+        side = int(sample["canvas"])
+        seen.add(side)
+        assert sample["labels"].shape == (8, side**3)
+        planes, chunks, valid, _, _ = learner.prepare(sample)
+        assert planes.shape[1:4] == (side,) * 3
+        for row in range(8):
+            on = sample["labels"][row] >= 0
+            task = make_task(crop(on.reshape((side,) * 3)), int(sample["pieces"][row]))
+            assert task.shape_name and (side == 4) == (task.topology.dims == (4, 3, 2))
+            labels = sample["labels"][row][canvas_index(task, side)]
+            want = encode_batch(task, labels[None], sample["placed"][row : row + 1], side, True)[0]
+            np.testing.assert_allclose(planes[row], want)
+            real = chunks[row][valid[row]]
+            assert (real < side**3).all() and ((real >= 0).sum(axis=1) == task.piece_size).all()
+            assert on[real[real >= 0]].all()  # candidates lie on the shape, on the cropped canvas
+        before = learner.params
+        learner.update(sample)
+        assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params)))
+    assert seen == {4, 8}
+
+
+def test_crop_canvas_gives_the_states_as_played_on_the_smaller_canvas():
+    task = make_task("box:4x3x2", 3)
+    rng = np.random.default_rng(0)
+    labels = rng.integers(0, 4, size=(5, task.size)).astype(np.int8)
+    chunks = rng.integers(0, task.size, size=(5, 3, 6))
+    pad = np.full((5, 3, 2), -1)
+
+    def stored(canvas):
+        idx = canvas_index(task, canvas)
+        return {"labels": to_canvas(task, labels, canvas), "chunks": np.concatenate([idx[chunks], pad], axis=2).astype(np.int16)}
+
+    cropped = crop_canvas(stored(12), 12, 4)
+    for key in ("labels", "chunks"):
+        np.testing.assert_array_equal(cropped[key], stored(4)[key])
+    with pytest.raises(ValueError, match="does not fit"):
+        crop_canvas(stored(12), 12, 2)
+
+
 def test_canvas_episode_pads_chunks_and_marks_the_shape():
     tasks = parse_tasks("box:4x3x2:4", canvas=4)
     net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
     mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
     worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=2), seed=1)
     task = tasks.validation_tasks(0)[0]
-    episode = worker.searchers(task)[0].play(
+    episode = worker.searchers(task, 4)[0].play(
         init_params(net, jax.random.PRNGKey(0)), task, jax.random.PRNGKey(0), seed=0
     )[0]
     out = canvas_episode(task, episode, 4, 9)

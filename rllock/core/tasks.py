@@ -1,15 +1,22 @@
 """Many tasks for one network (`rllock train --tasks SPEC`): task groups, random shapes, and the draws.
 
-SPEC lists task groups separated by commas, each `SHAPE:K` or `SHAPE:KLO-KHI`:
-  cube4:6-9,cube5:12-16,cube6:18-25,box:6x5x4:8-12,random:60-200:6-20
+SPEC lists task groups separated by commas, each `SHAPE:K` or `SHAPE:KLO-KHI`, optionally `@C`:
+  cube4:6-9,cube5:12-16,cube6:18-25,box:6x5x4:8-12,random:60-200:6-20,random:300-1000:15-80@16
 SHAPE is anything `--shape` takes (a built-in name, `box:WxHxD`, a file), or `random:NLO-NHI`: a fresh
-connected shape of NLO..NHI voxels for every draw, grown inside the canvas (training diversity). Each
-self-play batch draws a group uniformly, then a shape of the group and a K of its range uniformly (for
-random shapes, K is kept to at most N/2, so that a piece has at least 2 voxels).
+connected shape of NLO..NHI voxels for every draw, grown inside the group's canvas (training diversity).
+Each self-play batch draws a group uniformly, then a shape of the group and a K of its range uniformly
+(for random shapes, K is kept to at most N/2, so that a piece has at least 2 voxels).
+
+Canvases: a group is played on the run's canvas (--canvas, or an --init checkpoint's; else 8, or the
+smallest multiple of 4 that fits every listed shape), or on its own canvas C where it says `@C`. So one
+run can train one network on several canvases (the U-Net's weights do not depend on the side); each
+state is stored on the largest and learned from on its own (`rllock.search.canvas.crop_canvas`), and a
+checkpoint plays a shape on the smallest canvas that fits it, as it was trained.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
 
@@ -30,6 +37,7 @@ class TaskGroup:
     grid: np.ndarray | None  # the shape; None: a random shape per draw
     sizes: tuple[int, int] | None  # random shapes: voxel counts, inclusive
     pieces: tuple[int, int]  # K range, inclusive
+    canvas: int = 0  # the side of the canvas it is played on (`parse_tasks` sets it)
 
     def max_piece_size(self) -> int:
         """The largest n = floor(N / K) a draw of this group can have."""
@@ -41,12 +49,24 @@ class TaskGroup:
 
 @dataclass(frozen=True, eq=False)
 class TaskSet:
-    """Task groups on one canvas; plain data (numpy grids), so that it travels to actor processes."""
+    """Task groups, each on its canvas; plain data (numpy grids), so that it travels to actor processes."""
 
     spec: str
     groups: tuple[TaskGroup, ...]
-    canvas: int
     removal: str
+
+    @property
+    def canvas(self) -> int:
+        """The smallest canvas of the run: a checkpoint's own, on which it plays every shape that fits."""
+        return min(group.canvas for group in self.groups)
+
+    @property
+    def store_canvas(self) -> int:
+        """The largest canvas of the run, on which the replay buffer stores every state."""
+        return max(group.canvas for group in self.groups)
+
+    def canvases(self) -> tuple[int, ...]:
+        return tuple(sorted({group.canvas for group in self.groups}))
 
     def draw(self, rng: np.random.Generator) -> tuple[int, Task]:
         """(group number, a task of it), as the module docstring says."""
@@ -62,7 +82,7 @@ class TaskSet:
         size = (size_lo + size_hi) // 2 if middle else int(rng.integers(size_lo, size_hi + 1))
         hi = min(hi, size // 2)
         k = max(2, (lo + hi) // 2 if middle else int(rng.integers(min(lo, hi), hi + 1)))
-        grid = random_shape(rng, size, self.canvas)
+        grid = random_shape(rng, size, group.canvas)
         return make_task(grid, k, self.removal, name=f"random{size}")
 
     def validation_tasks(self, seed: int) -> list[Task]:
@@ -84,6 +104,7 @@ class TaskSet:
             "shapes_sha256": [None if g.grid is None else grid_sha256(g.grid) for g in self.groups],
             "removal": self.removal,
             "canvas": self.canvas,
+            "canvases": list(self.canvases()),
             "checker_version": CHECKER_VERSION,
         }
 
@@ -100,44 +121,56 @@ def _range(text: str, what: str, item: str) -> tuple[int, int]:
 
 
 def parse_tasks(spec: str, *, canvas: int | None = None, removal: str = "straight", step: int = 4) -> TaskSet:
-    """The task set named by `spec` (module docstring) on `canvas` (default: 8, or the smallest multiple
-    of `step` that fits every listed shape when one is larger), with clear errors for what cannot be
-    trained."""
+    """The task set named by `spec` (module docstring): groups without `@C` on `canvas` (default: 8, or
+    the smallest multiple of `step` that fits every such shape when one is larger), with clear errors
+    for what cannot be trained."""
     items = [item.strip() for item in spec.split(",") if item.strip()]
     if not items:
         raise RLLockError("--tasks is empty: list groups like cube4:6-9,random:60-200:6-20")
-    parsed = []
-    for item in items:
-        if ":" not in item:
-            raise RLLockError(f"task group {item!r} has no piece count: use SHAPE:K or SHAPE:KLO-KHI")
-        shape, k_text = item.rsplit(":", 1)
-        pieces = _range(k_text, "piece count", item)
-        if pieces[0] < 2:
-            raise RLLockError(f"task group {item!r}: K must be at least 2")
-        if pieces[1] > np.iinfo(np.int8).max:
-            raise RLLockError(f"task group {item!r}: K at most {np.iinfo(np.int8).max} in multi-task runs")
-        if shape.startswith("random:"):
-            sizes = _range(shape.removeprefix("random:"), "voxel count", item)
-            if sizes[0] < 4:
-                raise RLLockError(f"task group {item!r}: random shapes need at least 4 voxels")
-            parsed.append(TaskGroup(item, None, sizes, pieces))
-        else:
-            grid = load_shape(shape)
-            if pieces[1] > grid.sum():
-                raise RLLockError(
-                    f"task group {item!r}: K = {pieces[1]} exceeds the shape's {grid.sum()} voxels"
-                )
-            parsed.append(TaskGroup(item, grid, None, pieces))
-    fixed = [max(g.grid.shape) for g in parsed if g.grid is not None]
+    parsed = [(_group(item), _own_canvas(item, step)) for item in items]
+    fixed = [max(g.grid.shape) for g, own in parsed if g.grid is not None and own is None]
     side = canvas or -(-max([DEFAULT_CANVAS, *fixed]) // step) * step
-    for group in parsed:
-        if group.grid is not None and max(group.grid.shape) > side:
-            raise RLLockError(f"task group {group.spec!r}: the shape does not fit the {side}^3 canvas")
-        if group.sizes is not None and group.sizes[1] > side**3:
+    groups = tuple(dataclasses.replace(group, canvas=own or side) for group, own in parsed)
+    for group in groups:
+        if group.grid is not None and max(group.grid.shape) > group.canvas:
+            raise RLLockError(f"task group {group.spec!r}: the shape does not fit the {group.canvas}^3 canvas")
+        if group.sizes is not None and group.sizes[1] > group.canvas**3:
             raise RLLockError(
-                f"task group {group.spec!r}: {group.sizes[1]} voxels exceed the {side}^3 canvas"
+                f"task group {group.spec!r}: {group.sizes[1]} voxels exceed the {group.canvas}^3 canvas"
             )
-    return TaskSet(spec, tuple(parsed), side, removal)
+    return TaskSet(spec, groups, removal)
+
+
+def _own_canvas(item: str, step: int) -> int | None:
+    """The canvas a group asks for with `@C`, or None."""
+    if "@" not in item:
+        return None
+    text = item.rsplit("@", 1)[1]
+    if not text.isdigit() or int(text) < step or int(text) % step:
+        raise RLLockError(f"bad canvas {text!r} in task group {item!r}: use @C, C a multiple of {step}")
+    return int(text)
+
+
+def _group(item: str) -> TaskGroup:
+    """One task group as written (without its canvas)."""
+    body = item.rsplit("@", 1)[0]
+    if ":" not in body:
+        raise RLLockError(f"task group {item!r} has no piece count: use SHAPE:K or SHAPE:KLO-KHI")
+    shape, k_text = body.rsplit(":", 1)
+    pieces = _range(k_text, "piece count", item)
+    if pieces[0] < 2:
+        raise RLLockError(f"task group {item!r}: K must be at least 2")
+    if pieces[1] > np.iinfo(np.int8).max:
+        raise RLLockError(f"task group {item!r}: K at most {np.iinfo(np.int8).max} in multi-task runs")
+    if shape.startswith("random:"):
+        sizes = _range(shape.removeprefix("random:"), "voxel count", item)
+        if sizes[0] < 4:
+            raise RLLockError(f"task group {item!r}: random shapes need at least 4 voxels")
+        return TaskGroup(item, None, sizes, pieces)
+    grid = load_shape(shape)
+    if pieces[1] > grid.sum():
+        raise RLLockError(f"task group {item!r}: K = {pieces[1]} exceeds the shape's {grid.sum()} voxels")
+    return TaskGroup(item, grid, None, pieces)
 
 
 def random_shape(rng: np.random.Generator, size: int, canvas: int) -> np.ndarray:

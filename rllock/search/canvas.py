@@ -9,6 +9,10 @@ Augmentation: each transition is mapped through one of the 48 rotations and refl
 bounding box (axis permutations, then mirror images within the box), which keeps the shape at the
 canvas origin. The image is a state of the rotated or mirrored shape, with the same candidates (mapped),
 search policy and value: slides, contacts and connectivity are all preserved by these maps.
+
+Several canvases in one run (`rllock.core.tasks`): states are stored on the run's largest canvas, and a
+batch is learned from on the canvas its states were played on (`crop_canvas`): since shapes sit at the
+origin, a smaller canvas is the store's corner, and its cells keep their (x, y, z).
 """
 
 from __future__ import annotations
@@ -44,6 +48,25 @@ def canvas_episode(task: Task, episode: Episode, canvas: int, piece_size: int) -
         episode.final,
         episode.actions,
     )
+
+
+def crop_canvas(sample: dict[str, np.ndarray], store: int, canvas: int) -> dict[str, np.ndarray]:
+    """Transitions stored on a `store`^3 canvas as the same transitions on the `canvas`^3 corner, which
+    must hold their shapes: labels [B, store^3] -> [B, canvas^3], candidate indices remapped (-1 stays)."""
+    if canvas == store:
+        return sample
+    labels = sample["labels"].reshape(-1, store, store, store)
+    if (labels[:, canvas:] >= 0).any() or (labels[:, :, canvas:] >= 0).any() or (labels[..., canvas:] >= 0).any():
+        raise ValueError(f"a stored shape does not fit the {canvas}^3 canvas")
+    chunks = sample["chunks"]
+    x, rest = np.divmod(chunks.astype(np.int64), store * store)
+    y, z = np.divmod(rest, store)
+    cropped = np.where(chunks >= 0, (x * canvas + y) * canvas + z, -1).astype(chunks.dtype)
+    return {
+        **sample,
+        "labels": np.ascontiguousarray(labels[:, :canvas, :canvas, :canvas]).reshape(len(labels), -1),
+        "chunks": cropped,
+    }
 
 
 @functools.cache
