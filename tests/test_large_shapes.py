@@ -18,7 +18,7 @@ from helpers import random_valid_states
 from rllock.core import compiled_checkers as checkers
 from rllock.core import compiled_sampler as sampler
 from rllock.core import reference_checkers as ref
-from rllock.core.env import initial_state, make_task
+from rllock.core.env import initial_state, make_task, sample_accepted, tightest_subset
 from rllock.core.verifier import verify_labels
 from rllock.search.solver import SearchConfig, search, solve
 
@@ -154,3 +154,83 @@ def test_closed_proposal_solves_a_task_frontier_growth_misses():
     sizes = np.bincount(labels.ravel())[1:]
     assert len(sizes) == 30 and (sizes[:-1] == 32).all()
     assert verify_labels(labels, "straight").valid
+
+
+def test_chunk_cuts_count_the_faces_a_chunk_shares_with_the_rest_of_the_remaining_volume():
+    """Against a brute force over voxel coordinates, on random states and raw chunks of several shapes."""
+    checked = 0
+    for shape, k in [("cube5", 6), ("ring", 8), ("desia-dog", 40)]:
+        task = make_task(shape, k)
+        coords = [tuple(c) for c in task.topology.coords.tolist()]
+        rng = np.random.default_rng(k)
+        for state in itertools.islice(random_valid_states(task, rng, 1), 0, 12, 3):
+            raw = sampler.sample_raw(
+                task.topology.arrays,
+                state.labels,
+                state.placed + 1,
+                task.piece_size,
+                20,
+                int(rng.integers(1 << 30)),
+            )
+            cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, raw)
+            rest = {coords[v] for v in np.flatnonzero(state.labels == 0)}
+            for chunk, cut in zip(raw, cuts):
+                piece = {coords[v] for v in chunk}
+                faces = sum(
+                    (x + dx, y + dy, z + dz) in rest - piece
+                    for x, y, z in piece
+                    for dx, dy, dz in ref.DIRECTIONS
+                )
+                assert cut == faces
+                checked += 1
+    assert checked >= 100
+
+
+def test_tightest_children_are_distinct_accepted_chunks_with_the_smallest_cuts():
+    task = make_task("desia-dog", 40)
+    rng = np.random.default_rng(2)
+    for state in itertools.islice(random_valid_states(task, rng, 1), 0, 20, 5):
+        accepted = sample_accepted(task, state, seed=int(rng.integers(1 << 30)), num_samples=400)
+        if len(accepted) < 12:
+            continue
+        kids = tightest_subset(task, state, accepted, 8, seed=3)
+        unique = {tuple(sorted(c)) for c in accepted.tolist()}
+        assert len({tuple(c) for c in kids.tolist()}) == len(kids) == min(8, len(unique))
+        assert {tuple(c) for c in kids.tolist()} <= unique
+        cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, np.array(sorted(unique), np.int32))
+        kid_cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, kids)
+        assert kid_cuts.max() <= np.sort(cuts)[len(kids) - 1]
+
+
+def _accepted_with(task, state, seed, **options):
+    topo = task.topology.arrays
+    return sampler.sample_and_check_mixed(
+        topo, state.labels, state.placed + 1, task.piece_size, 400, False, seed, 0.0, **options
+    )[0]
+
+
+def test_thin_and_wide_growth_keep_only_checker_accepted_chunks_and_change_what_is_drawn():
+    """Thin growth prefers frontier voxels with fewer remaining neighbours; wide seeds start chunks at
+    any remaining voxel that touches a placed piece, not only the previous one. Every chunk kept still
+    passes all three checks, and neither option changes the default stream when off."""
+    task = make_task("desia-dog", 40)
+    topo, nbr = task.topology.arrays, task.topology.arrays[0]
+    rng = np.random.default_rng(4)
+    degrees: dict[int, list[int]] = {0: [], 1: []}
+    away = 0
+    for state in itertools.islice(random_valid_states(task, rng, 2), 1, None, 2):
+        piece, seed = state.placed + 1, int(rng.integers(1 << 30))
+        plain, _ = sampler.sample_and_check(topo, state.labels, piece, task.piece_size, 400, False, seed)
+        np.testing.assert_array_equal(_accepted_with(task, state, seed, thin=0, wide_seeds=False), plain)
+        free = state.labels == 0
+        for thin in (0, 1):
+            for chunk in _accepted_with(task, state, seed, thin=thin):
+                degrees[thin] += [sum(free[u] for u in nbr[v] if u >= 0) for v in chunk]
+        wide = _accepted_with(task, state, seed, wide_seeds=True)
+        if len(wide):
+            bits = checkers.check_chunks(topo, state.labels, piece, wide, False)
+            assert (bits == checkers.ALL_CHECKS).all()
+            previous = state.labels == piece - 1
+            away += sum(not previous[nbr[chunk]].any() for chunk in wide)
+    assert np.mean(degrees[1]) < np.mean(degrees[0]) - 0.1
+    assert away > 0

@@ -300,7 +300,9 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
             assert on[real[real >= 0]].all()  # candidates lie on the shape, on the cropped canvas
         before = learner.params
         learner.update(sample)
-        assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params)))
+        assert not all(
+            np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params))
+        )
     assert seen == {4, 8}
 
 
@@ -313,7 +315,10 @@ def test_crop_canvas_gives_the_states_as_played_on_the_smaller_canvas():
 
     def stored(canvas):
         idx = canvas_index(task, canvas)
-        return {"labels": to_canvas(task, labels, canvas), "chunks": np.concatenate([idx[chunks], pad], axis=2).astype(np.int16)}
+        return {
+            "labels": to_canvas(task, labels, canvas),
+            "chunks": np.concatenate([idx[chunks], pad], axis=2).astype(np.int16),
+        }
 
     cropped = crop_canvas(stored(12), 12, 4)
     for key in ("labels", "chunks"):

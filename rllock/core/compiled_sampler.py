@@ -52,11 +52,39 @@ def _below(state, bound):
     return np.int64((r * np.uint64(bound)) >> np.uint64(32))
 
 
+@njit(cache=True, nogil=True)
+def _degree(r_nbr, v):
+    """How many R neighbours R voxel v has."""
+    d = 0
+    while d < 6 and r_nbr[v, d] >= 0:
+        d += 1
+    return d
+
+
+@njit(cache=True, nogil=True)
+def _touching_placed(nbr, labels):
+    """The R voxels (label 0) that touch a placed piece."""
+    out = np.empty(labels.shape[0], np.int32)
+    k = 0
+    for v in range(labels.shape[0]):
+        if labels[v] != 0:
+            continue
+        for t in range(6):
+            u = nbr[v, t]
+            if u >= 0 and labels[u] > 0:
+                out[k] = v
+                k += 1
+                break
+    return out[:k]
+
+
 @njit(cache=True)
-def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stamp):
+def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stamp, thin):
     """Grow one raw chunk into `chunk` and stamp it in `in_chunk`; False if it cannot reach n voxels.
     r_nbr lists each R voxel's R neighbours (-1 after the last); `front_mark` holds `stamp` for the
-    chunk's voxels and its frontier, so one load tells whether a neighbour is new."""
+    chunk's voxels and its frontier, so one load tells whether a neighbour is new. With `thin` > 0, a
+    frontier voxel is the thinnest of 1 + thin uniform draws (as the closed proposal's, THIN); with 0
+    the random stream is that of uniform growth."""
     v = seeds[_below(rng, seeds.shape[0])]
     chunk[0] = v
     in_chunk[v] = stamp
@@ -67,6 +95,13 @@ def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stam
             if nf == 0:
                 return False
             pick = _below(rng, nf)
+            if thin > 0 and nf > 1:
+                best = _degree(r_nbr, front[pick])
+                for _ in range(thin):
+                    other = _below(rng, nf)
+                    deg = _degree(r_nbr, front[other])
+                    if deg < best:
+                        pick, best = other, deg
             v = front[pick]
             nf -= 1
             front[pick] = front[nf]
@@ -87,15 +122,6 @@ def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stam
 # draws: peeling thin parts first leaves a compact remaining volume, which deep searches need (measured
 # on desia-bunny K=60 and desia-dog K=40, 4 seeds each: 3 of 8 found in 20 s with it, 0 of 8 without).
 THIN = 1
-
-
-@njit(cache=True, nogil=True)
-def _degree(r_nbr, v):
-    """How many R neighbours R voxel v has."""
-    d = 0
-    while d < 6 and r_nbr[v, d] >= 0:
-        d += 1
-    return d
 
 
 @njit(cache=True, nogil=True)
@@ -197,13 +223,29 @@ def sample_and_check(topo, labels, piece, n, num_samples, removal_path, seed):
 
 
 @njit(cache=True)
-def sample_and_check_mixed(topo, labels, piece, n, num_samples, removal_path, seed, closed_share):
+def sample_and_check_mixed(
+    topo, labels, piece, n, num_samples, removal_path, seed, closed_share, thin=0, wide_seeds=False
+):
     """`sample_and_check` with a share `closed_share` (0..1) of the raw chunks drawn by the closed
-    proposal (`_sample_closed_chunk`) instead of frontier growth; 0 is exactly `sample_and_check`.
-    Every chunk still passes all the checks. Returns (accepted int32[k, n], k)."""
+    proposal (`_sample_closed_chunk`) instead of frontier growth, frontier voxels drawn as the thinnest
+    of 1 + `thin` (`_sample_chunk`), and with `wide_seeds`, chunks started at any R voxel that touches a
+    placed piece, not only the previous one; the defaults are exactly `sample_and_check`. Every chunk
+    still passes all the checks. Returns (accepted int32[k, n], k)."""
     accepted = np.empty((num_samples, n), np.int32)
     k, _ = _sample_into(
-        topo, labels, piece, n, num_samples, num_samples, False, removal_path, seed, closed_share, accepted
+        topo,
+        labels,
+        piece,
+        n,
+        num_samples,
+        num_samples,
+        False,
+        removal_path,
+        seed,
+        closed_share,
+        accepted,
+        thin,
+        wide_seeds,
     )
     return accepted[:k], k
 
@@ -224,7 +266,7 @@ def sample_raw(topo, labels, piece, n, num_samples, seed):
     front = np.empty(n_vox, np.int32)
     k = 0
     for s in range(num_samples):
-        if _sample_chunk(rng, seeds, r_nbr, n, out[k], in_chunk, front, front_mark, s + 1):
+        if _sample_chunk(rng, seeds, r_nbr, n, out[k], in_chunk, front, front_mark, s + 1, 0):
             k += 1
     return out[:k]
 
@@ -291,15 +333,32 @@ def node_candidates(topo, labels, piece, n, num_samples, max_candidates, removal
 
 
 @njit(cache=True, nogil=True)
-def _sample_into(topo, labels, piece, n, num_samples, keep, distinct, removal_path, seed, closed_share, out):
+def _sample_into(
+    topo,
+    labels,
+    piece,
+    n,
+    num_samples,
+    keep,
+    distinct,
+    removal_path,
+    seed,
+    closed_share,
+    out,
+    thin=0,
+    wide_seeds=False,
+):
     """Draw raw chunks for piece `piece` (at most `num_samples`) and write the accepted ones into `out`
     until `keep` are kept; with `distinct`, as sorted voxel numbers without repeats. A share
-    `closed_share` of the chunks comes from the closed proposal; with 0 the random stream is that of
-    frontier growth alone. Returns (kept, drawn)."""
+    `closed_share` of the chunks comes from the closed proposal; with 0 (and `thin` 0, `wide_seeds`
+    off: `sample_and_check_mixed`) the random stream is that of frontier growth alone. Returns (kept,
+    drawn)."""
     rng = _rng(seed)
     nbr, ray, _, n_lines, _, index = topo
     node = prepare_node(nbr, ray, labels, piece)
     seeds, r_nbr = node[1], node[5]
+    if wide_seeds and piece > 1:
+        seeds = _touching_placed(nbr, labels)
     if seeds.shape[0] == 0:
         return 0, 0
     n_vox = labels.shape[0]
@@ -322,7 +381,7 @@ def _sample_into(topo, labels, piece, n, num_samples, keep, distinct, removal_pa
                 >= 0
             )
         else:
-            grown = _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, s)
+            grown = _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, s, thin)
         if not grown:
             continue
         if check_chunk(chunk, n, piece, topo, node, removal_path, False, scratch, s) != ALL_CHECKS:
@@ -373,3 +432,23 @@ def candidates_serial(topo, labels, pieces, seeds, n, num_samples, max_candidate
             topo, labels, pieces, seeds, n, num_samples, max_candidates, removal_path, out, found, drawn, b
         )
     return out, found, drawn
+
+
+@njit(cache=True)
+def chunk_cuts(nbr, labels, chunks):
+    """int64[k]: for each chunk (a row of voxel numbers of R, labels 0), how many faces it shares with
+    the rest of R: what the remaining volume loses as surface when the chunk leaves it is this cut less
+    the chunk's own faces to the outside, so a small cut leaves a compact remainder."""
+    mark = np.zeros(labels.shape[0], np.int64)
+    out = np.zeros(chunks.shape[0], np.int64)
+    for c in range(chunks.shape[0]):
+        for j in range(chunks.shape[1]):
+            mark[chunks[c, j]] = c + 1
+        cut = 0
+        for j in range(chunks.shape[1]):
+            for t in range(6):
+                u = nbr[chunks[c, j], t]
+                if u >= 0 and labels[u] == 0 and mark[u] != c + 1:
+                    cut += 1
+        out[c] = cut
+    return out

@@ -112,10 +112,18 @@ def rejections(task: Task, state: State, *, seed: int, num_samples: int) -> tupl
 
 
 def sample_accepted(
-    task: Task, state: State, *, seed: int, num_samples: int, closed_share: float = 0.0
+    task: Task,
+    state: State,
+    *,
+    seed: int,
+    num_samples: int,
+    closed_share: float = 0.0,
+    thin: int = 0,
+    wide_seeds: bool = False,
 ) -> np.ndarray:
     """All checker-accepted raw chunks among `num_samples` samples (duplicates kept): int32[k, n].
-    A share `closed_share` of the raw chunks comes from the closed proposal (`compiled_sampler`)."""
+    A share `closed_share` of the raw chunks comes from the closed proposal; `thin` and `wide_seeds`
+    as `compiled_sampler.sample_and_check_mixed` says."""
     accepted, _ = sampler.sample_and_check_mixed(
         task.topology.arrays,
         state.labels,
@@ -125,6 +133,8 @@ def sample_accepted(
         task.removal == "path",
         seed,
         closed_share,
+        thin,
+        wide_seeds,
     )
     return accepted
 
@@ -176,3 +186,12 @@ def distinct_subset(accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
     """Up to `count` distinct chunks (as sorted voxel numbers) drawn uniformly from `accepted`."""
     unique = np.unique(np.sort(accepted, axis=1), axis=0)
     return unique[np.random.default_rng(seed).permutation(len(unique))[:count]]
+
+
+def tightest_subset(task: Task, state: State, accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """Up to `count` distinct chunks (as sorted voxel numbers) of `accepted`: those with the smallest cut
+    to the rest of the remaining volume (`compiled_sampler.chunk_cuts`), equal cuts in random order."""
+    unique = np.unique(np.sort(accepted, axis=1), axis=0)
+    cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, unique)
+    order = np.lexsort((np.random.default_rng(seed).random(len(unique)), cuts))
+    return unique[order[:count]]

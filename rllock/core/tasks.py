@@ -133,7 +133,9 @@ def parse_tasks(spec: str, *, canvas: int | None = None, removal: str = "straigh
     groups = tuple(dataclasses.replace(group, canvas=own or side) for group, own in parsed)
     for group in groups:
         if group.grid is not None and max(group.grid.shape) > group.canvas:
-            raise RLLockError(f"task group {group.spec!r}: the shape does not fit the {group.canvas}^3 canvas")
+            raise RLLockError(
+                f"task group {group.spec!r}: the shape does not fit the {group.canvas}^3 canvas"
+            )
         if group.sizes is not None and group.sizes[1] > group.canvas**3:
             raise RLLockError(
                 f"task group {group.spec!r}: {group.sizes[1]} voxels exceed the {group.canvas}^3 canvas"

@@ -56,7 +56,11 @@ def crop_canvas(sample: dict[str, np.ndarray], store: int, canvas: int) -> dict[
     if canvas == store:
         return sample
     labels = sample["labels"].reshape(-1, store, store, store)
-    if (labels[:, canvas:] >= 0).any() or (labels[:, :, canvas:] >= 0).any() or (labels[..., canvas:] >= 0).any():
+    if (
+        (labels[:, canvas:] >= 0).any()
+        or (labels[:, :, canvas:] >= 0).any()
+        or (labels[..., canvas:] >= 0).any()
+    ):
         raise ValueError(f"a stored shape does not fit the {canvas}^3 canvas")
     chunks = sample["chunks"]
     x, rest = np.divmod(chunks.astype(np.int64), store * store)
