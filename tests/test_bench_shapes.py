@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
-from helpers import run_cli
+from helpers import run_cli, save_multitask_run
 
+from rllock.config import MCTSConfig, NetConfig
 from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
@@ -21,6 +23,17 @@ def test_general_plays_a_shape_larger_than_its_canvas_on_the_smallest_canvas_tha
     assert load_policy("general", task=make_task("cube5", 13)).net.canvas == 8  # its own where it fits
     with pytest.raises(RLLockError, match=f"largest canvas .* plays on \\({MAX_CANVAS}\\^3\\)"):
         load_policy("general", task=make_task(f"box:{MAX_CANVAS + 1}x2x2", 4))
+
+
+def test_a_checkpoint_trained_on_several_canvases_plays_each_shape_on_the_smallest_that_fits(tmp_path, caplog):
+    net = NetConfig(canvas=4, features=(4, 8))
+    save_multitask_run(tmp_path / "run", "cube3:3,box:5x4x3:4@8", net=net, mcts=MCTSConfig(simulations=4))
+    with caplog.at_level(logging.INFO, logger="rllock.search.inference"):
+        assert load_policy(tmp_path / "run", task=make_task("cube4", 4)).net.canvas == 4
+        assert load_policy(tmp_path / "run", task=make_task("box:6x2x2", 3)).net.canvas == 8
+        assert "was trained on" not in caplog.text  # 4^3 and 8^3 are its own canvases
+        assert load_policy(tmp_path / "run", task=make_task("box:9x2x2", 3)).net.canvas == 10
+    assert "was trained on 4^3, 8^3 canvases; it plays box:9x2x2 on 10^3" in caplog.text
 
 
 @pytest.mark.slow

@@ -146,7 +146,7 @@ GOLDEN_DEFAULT_DIGEST = "a7cae8d25c7457800a245eecfd509ea7544bd49d1c42b078b1fa70c
 def test_closed_proposal_solves_a_task_frontier_growth_misses():
     """desia-bunny (966 voxels) K=30, n=32: frontier chunks of 32 voxels are almost never removable."""
     task = make_task("desia-bunny", 30)
-    old = SearchConfig(closed_share=0.0, restart_per_piece=0)
+    old = SearchConfig(closed_share=0.0, restart_per_piece=0, deep_from=10**6)
     assert next(iter(search(task, seed=0, time_limit=8, config=old)), None) is None
     found = solve(task, time_limit=30, seed=0, config=SearchConfig())
     assert len(found) == 1
@@ -234,3 +234,15 @@ def test_thin_and_wide_growth_keep_only_checker_accepted_chunks_and_change_what_
             away += sum(not previous[nbr[chunk]].any() for chunk in wide)
     assert np.mean(degrees[1]) < np.mean(degrees[0]) - 0.1
     assert away > 0
+
+
+def test_deep_mode_solves_many_small_pieces_where_the_plain_search_gets_stuck():
+    """mario (548 voxels, 4 thick) in K=50 pieces of 10: the plain search strands what remains (none
+    in 300 s in docs/benchmarks.md); deep mode keeps it compact (0.5 s there)."""
+    task = make_task("mario", 50)
+    plain = SearchConfig(deep_from=10**6)
+    assert not plain.deep(task) and SearchConfig().deep(task)
+    assert next(iter(search(task, seed=0, time_limit=8, config=plain)), None) is None
+    found = solve(task, time_limit=60, seed=0)
+    assert len(found) == 1 and verify_labels(found[0], "straight").valid
+    assert len(np.unique(found[0])) == 51  # 50 pieces and the empty cells

@@ -66,14 +66,16 @@ grows with the canvas's C^3 voxels (docs/benchmarks.md)."""
 
 def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> int:
     """The canvas on which a multi-task checkpoint plays `task`, a task it can serve (its removal mode and
-    checkers): its own canvas where the shape fits, else the smallest larger one that does, up to
-    MAX_CANVAS. The U-Net is convolutional and its value reads a mean over the canvas, so its weights do
-    not depend on the side; docs/benchmarks.md measures how well they carry over to larger canvases."""
+    checkers): the smallest canvas it was trained on where the shape fits, else the smallest larger one
+    that does, up to MAX_CANVAS. The U-Net is convolutional and its value reads a mean over the canvas,
+    so its weights do not depend on the side; docs/benchmarks.md measures how well they carry over to
+    larger canvases."""
     for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
         if saved.task.get(key) != here:
             raise RLLockError(f"checkpoint {where} was made for {key} {saved.task.get(key)!r}, not {here!r}")
-    if max(task.topology.dims) <= saved.canvas:
-        return saved.canvas
+    fits = [c for c in saved.task.get("canvases", [saved.canvas]) if max(task.topology.dims) <= c]
+    if fits:
+        return min(fits)
     canvas = fit_canvas(task, dataclasses.replace(saved.config.net, canvas=None)).canvas
     assert canvas is not None
     if canvas > MAX_CANVAS:
@@ -100,15 +102,18 @@ def load_policy(
                 "--shape and --pieces"
             )
         canvas = check_fits(task, meta, step_dir)
-        if canvas != net.canvas:
+        trained = meta.task.get("canvases", [net.canvas])
+        if canvas not in trained:
             log.info(
-                "%s was trained on a %d^3 canvas; it plays %s on %d^3 (its weights fit any side)",
+                "%s was trained on %s; it plays %s on %d^3 (its weights fit any side)",
                 source if isinstance(source, str) else step_dir,
-                net.canvas,
+                f"a {trained[0]}^3 canvas"
+                if len(trained) == 1
+                else ", ".join(f"{c}^3" for c in trained) + " canvases",
                 task.shape_name,
                 canvas,
             )
-            net = dataclasses.replace(net, canvas=canvas)
+        net = dataclasses.replace(net, canvas=canvas)
     else:
         if expect is not None:
             ckpt.check_same_task(meta.task, expect, step_dir)
