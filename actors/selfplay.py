@@ -200,7 +200,9 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas))  # waits: bounded in-flight data
+        ray.get(
+            self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas)
+        )  # waits: bounded in-flight data
         return replace(stats, sent_bytes=len(pickle.dumps(episodes, protocol=5)))
 
     def fetch(self, weights: list) -> int:

@@ -25,7 +25,9 @@ def test_general_plays_a_shape_larger_than_its_canvas_on_the_smallest_canvas_tha
         load_policy("general", task=make_task(f"box:{MAX_CANVAS + 1}x2x2", 4))
 
 
-def test_a_checkpoint_trained_on_several_canvases_plays_each_shape_on_the_smallest_that_fits(tmp_path, caplog):
+def test_a_checkpoint_trained_on_several_canvases_plays_each_shape_on_the_smallest_that_fits(
+    tmp_path, caplog
+):
     net = NetConfig(canvas=4, features=(4, 8))
     save_multitask_run(tmp_path / "run", "cube3:3,box:5x4x3:4@8", net=net, mcts=MCTSConfig(simulations=4))
     with caplog.at_level(logging.INFO, logger="rllock.search.inference"):
