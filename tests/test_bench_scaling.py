@@ -22,20 +22,20 @@ def test_the_plan_fits_the_machine_it_runs_on():
 
 
 @pytest.mark.slow
-def test_the_workstation_preset_runs_small_on_this_machine_over_one_and_three_nodes():
+def test_the_workstation_preset_runs_small_on_this_machine_over_three_nodes():
     small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2"]
     code, out, err = run_cli(
-        "bench", "scaling", "--preset", "workstation", *small, "--actors", "2", "--nodes", "1,3",
+        "bench", "scaling", "--preset", "workstation", *small, "--actors", "2", "--nodes", "3",
         "--seconds", "2", "--learner-steps", "2", "--json", timeout=400,
     )  # fmt: skip
     assert code == 0, out + err
     report = json.loads(out)
     rows = {(r["nodes"], r["actors"]): r for r in report["rows"]}
-    assert set(rows) == {(n, a) for n in (1, 3) for a in report["plan"]["actors"]}
+    assert set(rows) == {(3, a) for a in report["plan"]["actors"]}
     for (nodes, actors), row in rows.items():
         assert row["episodes"] > 0 and row["episodes_per_sec"] > 0 and row["learner_steps_per_sec"] > 0
         # the episodes' arrays cross the object store: at least their labels, one byte per voxel a step
         assert row["bytes_per_episode"] > 32
         assert row["param_bytes"] > 0 and row["broadcast_ms"] > 0 and row["call_ms"] > 0
-        assert row["actor_nodes"] == min(actors, 1 if nodes == 1 else nodes - 1)
+        assert row["actor_nodes"] == min(actors, nodes - 1)  # spread over the worker nodes
     assert report["learner_alone_steps_per_sec"]["cpu"] > 0

@@ -242,7 +242,7 @@ def test_deep_mode_solves_many_small_pieces_where_the_plain_search_gets_stuck():
     task = make_task("mario", 50)
     plain = SearchConfig(deep_from=10**6)
     assert not plain.deep(task) and SearchConfig().deep(task)
-    assert next(iter(search(task, seed=0, time_limit=8, config=plain)), None) is None
+    assert next(iter(search(task, seed=0, time_limit=4, config=plain)), None) is None
     found = solve(task, time_limit=60, seed=0)
     assert len(found) == 1 and verify_labels(found[0], "straight").valid
     assert len(np.unique(found[0])) == 51  # 50 pieces and the empty cells

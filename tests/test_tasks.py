@@ -273,7 +273,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
     worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
     buffer = ReplayBuffer(400, 512, 4, tasks.max_piece_size(), store_canvas=8)
     played = set()
-    for _ in range(6):
+    for _ in range(4):
         episodes, stats = worker.play()
         played.add(stats.canvas)
         assert all(e.labels.shape[1] == 512 for e in episodes)
@@ -281,7 +281,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
     assert played == {4, 8} and {c for _, c in worker.compiled} == {4, 8}
     learner = Learner(None, net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
     seen = set()
-    for seed in range(12):
+    for seed in range(8):
         sample = buffer.sample(8, seed=seed, success_fraction=0.5)
         side = int(sample["canvas"])
         seen.add(side)
