@@ -62,6 +62,21 @@ def _degree(r_nbr, v):
 
 
 @njit(cache=True, nogil=True)
+def _frontier_pick(rng, r_nbr, front, nf, thin):
+    """The index in front[:nf] of the next voxel to grow into: the thinnest (fewest R neighbours) of
+    1 + thin uniform draws; with thin 0 (or one voxel), exactly one draw."""
+    pick = _below(rng, nf)
+    if thin > 0 and nf > 1:
+        best = _degree(r_nbr, front[pick])
+        for _ in range(thin):
+            other = _below(rng, nf)
+            deg = _degree(r_nbr, front[other])
+            if deg < best:
+                pick, best = other, deg
+    return pick
+
+
+@njit(cache=True, nogil=True)
 def _touching_placed(nbr, labels):
     """The R voxels (label 0) that touch a placed piece."""
     out = np.empty(labels.shape[0], np.int32)
@@ -94,14 +109,7 @@ def _sample_chunk(rng, seeds, r_nbr, n, chunk, in_chunk, front, front_mark, stam
         if j > 0:
             if nf == 0:
                 return False
-            pick = _below(rng, nf)
-            if thin > 0 and nf > 1:
-                best = _degree(r_nbr, front[pick])
-                for _ in range(thin):
-                    other = _below(rng, nf)
-                    deg = _degree(r_nbr, front[other])
-                    if deg < best:
-                        pick, best = other, deg
+            pick = _frontier_pick(rng, r_nbr, front, nf, thin)
             v = front[pick]
             nf -= 1
             front[pick] = front[nf]
@@ -190,14 +198,7 @@ def _sample_closed_chunk(rng, seeds, topo, node, r_node, n, chunk, in_chunk, fro
         while m < 0:
             if nf == 0:
                 return -1
-            pick = _below(rng, nf)
-            if nf > 1:
-                best = _degree(r_nbr, front[pick])
-                for _ in range(THIN):
-                    other = _below(rng, nf)
-                    deg = _degree(r_nbr, front[other])
-                    if deg < best:
-                        pick, best = other, deg
+            pick = _frontier_pick(rng, r_nbr, front, nf, THIN)
             u = front[pick]
             nf -= 1
             front[pick] = front[nf]
