@@ -39,17 +39,23 @@ _TOKEN_LOGGER = "ray._private.authentication.authentication_token_setup"
 
 
 def start_ray(address: str | None) -> bool:
-    """Connect to Ray; True when this process started the instance (and so must shut it down). Ray
-    starts its processes with fork(), so call this before JAX starts its threads (the first JAX array)."""
+    """Connect to Ray at `address` (or at RAY_ADDRESS, set inside a Ray job), else start a private local
+    instance; True when this process started the instance (and so must shut it down). Ray starts its
+    processes with fork(), so call this before JAX starts its threads (the first JAX array)."""
     if ray.is_initialized():
         return False
+    address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
         ray.init(address=address, logging_level=logging.WARNING)
     else:
         notices = logging.getLogger(_TOKEN_LOGGER)
         if not any(isinstance(f, _DropDefaultTokenNotice) for f in notices.filters):
             notices.addFilter(_DropDefaultTokenNotice())
-        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING)
+        # "local": Ray would otherwise join the last cluster `ray start` (or a test's Cluster) left on
+        # this machine, a run of someone else's that our num_cpus cannot even be given to.
+        ray.init(
+            address="local", num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING
+        )
     return True
 
 

@@ -13,4 +13,5 @@ fi
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 .venv/bin/mypy
-exec .venv/bin/python -m pytest -q "$@"
+# Two workers: the slow tests (Ray, training) run in turn on one, the rest on the other (tests/conftest.py).
+exec .venv/bin/python -m pytest -q -n 2 --dist loadgroup "$@"

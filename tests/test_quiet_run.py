@@ -3,9 +3,12 @@ warnings from Ray or JAX that the run is fine without."""
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
 
 import pytest
 from helpers import tiny_flags
@@ -30,14 +33,26 @@ OUR_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ INFO (orchestration|
 
 def test_a_short_training_run_prints_only_its_own_lines(tmp_path):
     logdir = tmp_path / "run"
+    # The address file a `ray start` (or a test's Cluster) leaves behind, here of a cluster long gone: a
+    # run without --address starts its own Ray instead of joining it. A short folder: Ray's socket paths
+    # under it must stay within the 107 characters a Unix socket allows.
+    ray_tmp = tempfile.mkdtemp(prefix="rq", dir="/tmp")
+    os.makedirs(f"{ray_tmp}/ray")
+    with open(f"{ray_tmp}/ray/ray_current_cluster", "w") as f:
+        f.write("127.0.0.1:9")
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | {"RAY_TMPDIR": ray_tmp}
     # Ends on its step limit with a self-play batch in flight, which the shutdown must drop quietly.
-    proc = subprocess.run(
-        [sys.executable, "-m", "orchestration.cli", "train", *tiny_flags(), "--minutes", "1"]
-        + ["--max-learner-steps", "5", "--logdir", str(logdir)],
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "orchestration.cli", "train", *tiny_flags(), "--minutes", "1"]
+            + ["--max-learner-steps", "5", "--logdir", str(logdir)],
+            capture_output=True,
+            text=True,
+            timeout=240,
+            env=env,
+        )
+    finally:
+        shutil.rmtree(ray_tmp, ignore_errors=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("train: 5 learner steps")
     for needle in NOISE:
