@@ -19,9 +19,9 @@ def data() -> Path:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under xdist (`scripts/test.sh` runs two workers), the slow tests, which start Ray or train, run
-    one after another on one worker: two Ray instances at once would fight over the machine's cores and
-    make their timing tests flaky, while the quick tests fill the other worker."""
+    """Under xdist (`scripts/test.sh` runs two workers), the tests that start Ray run one after another
+    on one worker: two Ray instances at once would fight over the machine's cores and make their timing
+    tests flaky, while the other tests fill the other worker."""
     for item in items:
-        if item.get_closest_marker("slow"):
-            item.add_marker(pytest.mark.xdist_group("slow"))
+        if item.get_closest_marker("ray"):
+            item.add_marker(pytest.mark.xdist_group("ray"))

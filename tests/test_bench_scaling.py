@@ -22,6 +22,7 @@ def test_the_plan_fits_the_machine_it_runs_on():
 
 
 @pytest.mark.slow
+@pytest.mark.ray
 def test_the_workstation_preset_runs_small_on_this_machine_over_three_nodes():
     small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2"]
     code, out, err = run_cli(

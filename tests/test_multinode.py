@@ -94,6 +94,7 @@ def _actor_nodes(api: str, class_name: str = "SelfPlayActor") -> set[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.ray
 def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(cluster, tmp_path):
     from ray.job_submission import JobStatus, JobSubmissionClient
 

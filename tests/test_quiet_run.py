@@ -13,7 +13,7 @@ import tempfile
 import pytest
 from helpers import tiny_flags
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.ray]
 
 # What a successful run printed before: Ray retrying the calls of the actors it was told to kill, with a
 # raw colour code; Ray doubting the actors' restarts; JAX's warning of a fork after its threads started;
