@@ -18,16 +18,23 @@ pytestmark = [pytest.mark.slow, pytest.mark.ray]
 STEPS = 60
 
 
+_RUNS: dict[str, tuple] = {}
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    logdir = tmp_path_factory.mktemp("run")
-    ray.init(num_cpus=2, include_dashboard=False)
-    try:
-        # The run ends on its learner-step limit; the minutes are only a safety net.
-        result = train(dataclasses.replace(TINY, minutes=5, max_learner_steps=STEPS, logdir=str(logdir)))
-    finally:
-        ray.shutdown()
-    return logdir, result
+    # Kept beyond the fixture: under xdist the worker tore this module fixture down between the module's
+    # tests and trained again (two setups, 30 s and 23 s); the run's folder outlives the teardown.
+    if "run" not in _RUNS:
+        logdir = tmp_path_factory.mktemp("run")
+        ray.init(num_cpus=2, include_dashboard=False)
+        try:
+            # The run ends on its learner-step limit; the minutes are only a safety net.
+            result = train(dataclasses.replace(TINY, minutes=5, max_learner_steps=STEPS, logdir=str(logdir)))
+        finally:
+            ray.shutdown()
+        _RUNS["run"] = (logdir, result)
+    return _RUNS["run"]
 
 
 def test_training_writes_checkpoints_and_event_files(run):
