@@ -13,5 +13,5 @@ fi
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 .venv/bin/mypy
-# Two workers: the slow tests (Ray, training) run in turn on one, the rest on the other (tests/conftest.py).
+# Two workers: the tests that start Ray run in turn on one, the rest on the other (tests/conftest.py).
 exec .venv/bin/python -m pytest -q -n 2 --dist loadgroup "$@"
