@@ -200,9 +200,8 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        ray.get(
-            self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas)
-        )  # waits: bounded in-flight data
+        # Waits for the buffer: bounded in-flight data.
+        ray.get(self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas))
         return replace(stats, sent_bytes=len(pickle.dumps(episodes, protocol=5)))
 
     def fetch(self, weights: list) -> int:

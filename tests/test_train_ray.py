@@ -27,7 +27,7 @@ def run(tmp_path_factory):
     # tests and trained again (two setups, 30 s and 23 s); the run's folder outlives the teardown.
     if "run" not in _RUNS:
         logdir = tmp_path_factory.mktemp("run")
-        ray.init(num_cpus=2, include_dashboard=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False)  # not a cluster left on the machine
         try:
             # The run ends on its learner-step limit; the minutes are only a safety net.
             result = train(dataclasses.replace(TINY, minutes=5, max_learner_steps=STEPS, logdir=str(logdir)))

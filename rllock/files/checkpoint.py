@@ -81,6 +81,11 @@ class Metadata:
         return int(self.task["canvas"])
 
     @property
+    def canvases(self) -> list[int]:
+        """The canvas sides the network was trained on (a run before several canvases: its one)."""
+        return [int(c) for c in self.task.get("canvases", [self.canvas])]
+
+    @property
     def removal(self) -> str:
         return str(self.task["removal"])
 

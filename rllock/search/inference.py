@@ -73,7 +73,7 @@ def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> int:
     for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
         if saved.task.get(key) != here:
             raise RLLockError(f"checkpoint {where} was made for {key} {saved.task.get(key)!r}, not {here!r}")
-    fits = [c for c in saved.task.get("canvases", [saved.canvas]) if max(task.topology.dims) <= c]
+    fits = [c for c in saved.canvases if max(task.topology.dims) <= c]
     if fits:
         return min(fits)
     canvas = fit_canvas(task, dataclasses.replace(saved.config.net, canvas=None)).canvas
@@ -102,7 +102,7 @@ def load_policy(
                 "--shape and --pieces"
             )
         canvas = check_fits(task, meta, step_dir)
-        trained = meta.task.get("canvases", [net.canvas])
+        trained = meta.canvases
         if canvas not in trained:
             log.info(
                 "%s was trained on %s; it plays %s on %d^3 (its weights fit any side)",
