@@ -12,7 +12,6 @@ of the actor's process (`actor_env`), so that actors never oversubscribe the cor
 from __future__ import annotations
 
 import os
-import pickle
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -23,13 +22,12 @@ import numpy as np
 import ray
 
 from rllock.config import MCTSConfig, NetConfig
-from rllock.core.env import Task, make_task
-from rllock.core.tasks import TaskSet
+from rllock.core.env import Task
 from rllock.process import peak_rss_mb
-from rllock.search.base import Episode, Player, TimeSplit, derive_seed
-from rllock.search.canvas import canvas_episode
+from rllock.search.base import BufferCounts, Episode, Player, TimeSplit, derive_seed
 from rllock.search.mcts import play_groups
 from rllock.search.methods import players, space
+from rllock.search.workload import Workload
 
 
 def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
@@ -47,30 +45,12 @@ def actor_env(threads: int, *, gpu: bool = False) -> dict[str, str]:
 
 
 @dataclass(frozen=True)
-class TaskSpec:
-    """A task as plain data, so that it can travel to other processes."""
-
-    grid: np.ndarray
-    pieces: int
-    removal: str
-    name: str
-
-    @staticmethod
-    def of(task: Task) -> TaskSpec:
-        return TaskSpec(task.topology.grid, task.pieces, task.removal, task.shape_name)
-
-    def make(self) -> Task:
-        return make_task(self.grid, self.pieces, self.removal, name=self.name)
-
-
-@dataclass(frozen=True)
 class PlaySpec:
-    """What a self-play worker plays: `episodes` episodes of the task per batch, in `groups` lockstep
-    groups, with this network and search; `method` (`rllock.config.METHODS`) says what an action is.
-    With a `TaskSet`, each batch draws its task, and the episodes come as canvas states
-    (`rllock.search.canvas`)."""
+    """What a self-play worker plays: `episodes` episodes per batch of a task the workload draws, in
+    `groups` lockstep groups, with this network and search; `method` (`rllock.config.METHODS`) says what
+    an action is. The episodes come as the workload stores them."""
 
-    task: TaskSpec | TaskSet
+    workload: Workload
     net: NetConfig
     mcts: MCTSConfig
     method: str
@@ -92,8 +72,8 @@ class PlayStats:
     times: TimeSplit
     group: int = -1  # multi-task runs: the task group the batch drew
     pieces: int = 0  # the batch's K
-    sent_bytes: int = 0  # the episodes' pickled size, as Ray ships them to the replay buffer
-    canvas: int = 0  # multi-task runs: the canvas side the batch was played on
+    canvas: int = 0  # the canvas side the batch was played on
+    buffer: BufferCounts | None = None  # the replay buffer's counts once it took the batch
 
 
 def evaluate(
@@ -116,8 +96,6 @@ class SelfPlayWorker:
 
     def __init__(self, spec: PlaySpec, seed: int):
         self.spec = spec
-        self.tasks = spec.task if isinstance(spec.task, TaskSet) else None
-        self.task = spec.task.make() if isinstance(spec.task, TaskSpec) else None
         # PPO runs no search: its decisions cost one network call each, not simulations.
         self.simulations_per_decision = 0 if spec.method == "ppo" else spec.mcts.simulations
         # Compiled searches by action shape (M, n) and canvas: a multi-task run meets a few piece sizes
@@ -145,16 +123,11 @@ class SelfPlayWorker:
         self.key, sub = jax.random.split(self.key)
         times = TimeSplit()
         seed = derive_seed(self.seed, self.batches)
-        group, task, canvas = -1, self.task, self.spec.net.canvas_side()
-        if self.tasks is not None:
-            group, task = self.tasks.draw(np.random.default_rng([seed, 7]))  # not the store's stream
-            canvas = self.tasks.groups[group].canvas
-        assert task is not None
-        searchers = self.searchers(task, canvas)
+        draw = self.spec.workload.draw(np.random.default_rng([seed, 7]))  # not the store's stream
+        task = draw.task
+        searchers = self.searchers(task, draw.canvas)
         episodes, seconds = evaluate(searchers, self.params, task, sub, seed=seed, times=times)
-        if self.tasks is not None:
-            store, n_max = self.tasks.store_canvas, self.tasks.max_piece_size()
-            episodes = [canvas_episode(task, e, store, n_max) for e in episodes]
+        episodes = self.spec.workload.stored(draw, episodes)
         self.batches += 1
         decisions = sum(len(e.z) for e in episodes)  # finished rows of the lockstep batch not counted
         stats = PlayStats(
@@ -168,9 +141,9 @@ class SelfPlayWorker:
             peak_rss_mb(),
             seconds,
             times,
-            group,
+            draw.group,
             task.pieces,
-            canvas=canvas if self.tasks is not None else 0,
+            draw.canvas,
         )
         return episodes, stats
 
@@ -200,11 +173,7 @@ class SelfPlayActor:
         if version != self.worker.version:
             self.worker.set_weights(ray.get(weights[0]), version)
         episodes, stats = self.worker.play()
-        # Waits for the buffer: bounded in-flight data.
-        ray.get(self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas))
-        return replace(stats, sent_bytes=len(pickle.dumps(episodes, protocol=5)))
-
-    def fetch(self, weights: list) -> int:
-        """Fetch a weights version and nothing else (`rllock bench scaling`'s broadcast latency); returns
-        the parameters' bytes."""
-        return sum(leaf.nbytes for leaf in jax.tree_util.tree_leaves(ray.get(weights[0])))
+        # Waits for the buffer: bounded in-flight data. Its counts come back with the statistics, so that
+        # the driver need not ask the buffer for them.
+        counts = ray.get(self.buffer.add_many.remote(episodes, stats.pieces, stats.canvas))
+        return replace(stats, buffer=counts)

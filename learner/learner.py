@@ -10,19 +10,9 @@ import numpy as np
 import optax
 
 from rllock.config import LearnerConfig
-from rllock.core.env import Task
-from rllock.core.topology import symmetries
-from rllock.search.canvas import augment_canvas
-from rllock.search.network import (
-    NetConfig,
-    PolicyValueNet,
-    canvas_index,
-    chunk_logits,
-    encode_batch,
-    encode_canvas,
-    init_params,
-)
+from rllock.search.network import NetConfig, PolicyValueNet, chunk_logits, init_params
 from rllock.search.ppo import ppo_loss
+from rllock.search.workload import Workload
 
 
 def loss_fn(params, net: PolicyValueNet, planes, chunks, valid, pi, z):
@@ -57,24 +47,10 @@ def ppo_update_step(
     return optax.apply_updates(params, updates), opt_state, policy, value_loss
 
 
-def augment(sample: dict[str, np.ndarray], perms: np.ndarray, seed: int) -> dict[str, np.ndarray]:
-    """Each transition mapped through one of the voxel permutations `perms` [S, N], drawn uniformly:
-    a symmetric image of a state, with the same candidates (mapped), search policy and value."""
-    rows = perms[np.random.default_rng(seed).integers(0, len(perms), size=len(sample["labels"]))]
-    labels = np.empty_like(sample["labels"])
-    np.put_along_axis(labels, rows, sample["labels"], axis=1)  # labels'[p(v)] = labels[v]
-    chunks = np.take_along_axis(rows, sample["chunks"].reshape(len(rows), -1).astype(np.int64), axis=1)
-    return {
-        **sample,
-        "labels": labels,
-        "chunks": chunks.reshape(sample["chunks"].shape).astype(sample["chunks"].dtype),
-    }
-
-
 class Learner:
     def __init__(
         self,
-        task: Task | None,
+        workload: Workload,
         net_config: NetConfig,
         config: LearnerConfig,
         key: jax.Array,
@@ -82,8 +58,8 @@ class Learner:
     ):
         """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is.
         `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error.
-        `task` None: a multi-task run, whose samples are canvas states (`rllock.search.canvas`)."""
-        self.task = task
+        `workload`: what the run plays, which says how its stored states become network inputs."""
+        self.workload = workload
         self.ppo = method == "ppo"
         self.net = PolicyValueNet(net_config)
         self.net_config = net_config
@@ -93,27 +69,13 @@ class Learner:
         self.params = init_params(net_config, init_key)
         self.opt_state = self.optimizer.init(self.params)
         self.step = 0
-        if task is not None:
-            self._canvas_idx = canvas_index(task, net_config.canvas_side())
-            self._symmetries = symmetries(task.topology) if config.symmetries else None
 
     def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
         """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z; for PPO
         pi, actions, z). With a `seed` (and symmetries on), each transition is first mapped through a
         random symmetry."""
-        canvas, task_planes = self.net_config.canvas, self.net_config.task_planes
-        assert canvas is not None
-        if self.task is None:
-            canvas = int(sample.get("canvas", canvas))  # the batch's own canvas (learner.replay)
-            if seed is not None and self.config.symmetries:
-                sample = augment_canvas(sample, canvas, seed)
-            planes = encode_canvas(sample["labels"], sample["placed"], sample["pieces"], canvas, task_planes)
-            chunks = sample["chunks"].astype(np.int32)
-        else:
-            if seed is not None and self._symmetries is not None:
-                sample = augment(sample, self._symmetries, seed)
-            planes = encode_batch(self.task, sample["labels"], sample["placed"], canvas, task_planes)
-            chunks = self._canvas_idx[sample["chunks"].astype(np.int64)]
+        seed = seed if self.config.symmetries else None
+        planes, chunks, sample = self.workload.inputs(sample, self.net_config, seed)
         m = sample["chunks"].shape[1]
         valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
         if self.ppo:

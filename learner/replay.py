@@ -15,7 +15,7 @@ import numpy as np
 
 from rllock.errors import RLLockError
 from rllock.process import peak_rss_mb
-from rllock.search.base import Episode
+from rllock.search.base import BufferCounts, Episode
 from rllock.search.canvas import crop_canvas
 
 
@@ -50,6 +50,7 @@ class ReplayBuffer:
         self.size = 0
         self.cursor = 0
         self.added = 0  # transitions ever added
+        self.received_bytes = 0  # the array bytes of every episode added (what self-play ships here)
 
     def add(self, episode: Episode, pieces: int = 0, canvas: int = 0) -> None:
         """`pieces`, `canvas`: the episode's K and the canvas side it was played on, stored for multi-task
@@ -70,9 +71,15 @@ class ReplayBuffer:
             self.size = min(self.size + 1, self.capacity)
             self.added += 1
 
-    def add_many(self, episodes: list[Episode], pieces: int = 0, canvas: int = 0) -> None:
+    def add_many(self, episodes: list[Episode], pieces: int = 0, canvas: int = 0) -> BufferCounts:
+        """Add a self-play batch; returns the counts after it."""
         for episode in episodes:
             self.add(episode, pieces, canvas)
+            self.received_bytes += sum(
+                getattr(episode, name).nbytes
+                for name in ("labels", "placed", "chunks", "num_valid", "pi", "z", "actions")
+            )
+        return self.counts()
 
     def sample(self, batch: int, seed: int, success_fraction: float = 0.0) -> dict[str, np.ndarray]:
         """`batch` transitions drawn uniformly (from one canvas: module docstring), except that
@@ -143,11 +150,7 @@ class ReplayBuffer:
             self.cursor = int(data["cursor"]) % self.capacity
         return size
 
-    def stats(self) -> dict[str, float]:
-        return {
-            "size": self.size,
-            "added": self.added,
-            "successes": int(self.success[: self.size].sum()),
-            "capacity": self.capacity,
-            "peak_rss_mb": peak_rss_mb(),
-        }
+    def counts(self) -> BufferCounts:
+        return BufferCounts(
+            self.size, self.added, int(self.success[: self.size].sum()), self.received_bytes, peak_rss_mb()
+        )

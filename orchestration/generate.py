@@ -6,6 +6,7 @@ parameters travel as host arrays, so a checkpoint trained on any device runs the
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,9 +15,11 @@ import jax
 import ray
 
 from actors.selfplay import actor_env
-from orchestration.pool import start_ray
+from orchestration.pool import Calls, start_ray
 from rllock.files.assembly import PictureWriter
 from rllock.search.inference import Collector, GenerateResult, Policy, play_round, searchers_for
+
+log = logging.getLogger(__name__)
 
 
 @ray.remote
@@ -50,27 +53,37 @@ def generate_on_ray(
     started = start_ray(address)
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))
-        options = dict(num_cpus=1, runtime_env={"env_vars": actor_env(1)})
-        # mypy skips class decorators: @ray.remote made GenerateActor an ActorClass, which has .options.
-        pool = [
-            GenerateActor.options(**options).remote(host_policy, batch)  # type: ignore[attr-defined]
-            for _ in range(actors)
-        ]
+        # Ray restarts a dead actor process and retries its round; one that fails for good is replaced.
+        options = dict(
+            num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
+        )
+
+        def new_actor():
+            # mypy skips class decorators: @ray.remote made GenerateActor an ActorClass, which has .options.
+            return GenerateActor.options(**options).remote(host_policy, batch)  # type: ignore[attr-defined]
+
+        pool = [new_actor() for _ in range(actors)]
         start = time.perf_counter()
         collector = Collector(
             policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
         )
-        inflight = {a.play.remote(seed, r): a for r, a in enumerate(pool)}
+        calls = Calls()
+        for round_, actor in enumerate(pool):
+            calls.submit(actor, actor.play.remote(seed, round_), round_)
         next_round = len(pool)
-        while inflight and not collector.done and not stop():
-            ready, _ = ray.wait(list(inflight), num_returns=1)
-            actor = inflight.pop(ready[0])
-            episodes, seconds = ray.get(ready[0])
-            collector.take(episodes, seconds)
-            if not collector.done and time.perf_counter() - start < time_limit and not stop():
-                inflight[actor.play.remote(seed, next_round)] = actor
-                next_round += 1
-        for actor in pool:  # rounds still under way are not needed
+        while calls and not collector.done and not stop():
+            done, failed = calls.wait(None)
+            for actor, round_, why in failed:
+                log.error("generation actor failed for good (%s); a new actor plays round %d", why, round_)
+                pool[pool.index(actor)] = actor = new_actor()
+                calls.submit(actor, actor.play.remote(seed, round_), round_)
+            for actor, _, (episodes, seconds) in done:
+                collector.take(episodes, seconds)
+                if not collector.done and time.perf_counter() - start < time_limit and not stop():
+                    calls.submit(actor, actor.play.remote(seed, next_round), next_round)
+                    next_round += 1
+        calls.cancel_all()  # rounds still under way are not needed
+        for actor in pool:
             ray.kill(actor)
         return collector.result(time.perf_counter() - start)
     finally:

@@ -7,15 +7,16 @@ import logging
 import os
 from collections import Counter
 from dataclasses import dataclass
+from typing import Any
 
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, TaskSpec, actor_env
+from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, actor_env
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
-from rllock.core.tasks import TaskSet
 from rllock.errors import RLLockError
+from rllock.search.workload import Workload
 
 log = logging.getLogger(__name__)
 
@@ -103,24 +104,76 @@ def plan_layout(
     return Layout(actors, selfplay.episodes_per_batch, share, threads, threads, 0.0, mode)
 
 
+class Calls:
+    """Calls in flight on actors, one per actor, tagged by what each asked for. `wait` returns the calls
+    that finished and those whose actor failed for good (Ray restarts a dead process and retries its call
+    on its own, for actors made with max_restarts and max_task_retries); the caller replaces a failed
+    actor. Only when more than `MAX_FAILURES_IN_A_ROW` calls fail with none finishing in between is it
+    an error."""
+
+    MAX_FAILURES_IN_A_ROW = 10
+
+    def __init__(self) -> None:
+        self.inflight: dict[ray.ObjectRef, tuple[Any, Any]] = {}  # call -> (actor, tag)
+        self.failures_in_a_row = 0
+
+    def submit(self, actor: Any, call: ray.ObjectRef, tag: Any) -> None:
+        self.inflight[call] = (actor, tag)
+
+    def wait(self, timeout: float | None) -> tuple[list[tuple[Any, Any, Any]], list[tuple[Any, Any, str]]]:
+        """(finished: (actor, tag, result), failed: (actor, tag, why)) after waiting up to `timeout`
+        seconds for one call."""
+        ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=timeout)
+        done, failed = [], []
+        for ref in ready:
+            actor, tag = self.inflight.pop(ref)
+            try:
+                result = ray.get(ref)
+            except RayActorError as exc:
+                why = str(exc).splitlines()[0]
+                self.failures_in_a_row += 1
+                if self.failures_in_a_row > self.MAX_FAILURES_IN_A_ROW:
+                    raise RLLockError(
+                        f"actors failed {self.failures_in_a_row} times in a row with no call finished "
+                        f"(the last: {why}); see the log above"
+                    ) from None
+                failed.append((actor, tag, why))
+                continue
+            self.failures_in_a_row = 0
+            done.append((actor, tag, result))
+        return done, failed
+
+    def cancel_all(self) -> None:
+        for ref in self.inflight:
+            ray.cancel(ref)
+
+    def settle(self, seconds: float) -> None:
+        """Wait up to `seconds` for the cancelled calls to end, and forget them."""
+        refs = list(self.inflight)
+        if refs:
+            ray.wait(refs, num_returns=len(refs), timeout=seconds)
+        self.inflight.clear()
+
+    def __bool__(self) -> bool:
+        return bool(self.inflight)
+
+
 class ActorPool:
     """Self-play actors, each with one batch in flight, spread over the cluster's nodes.
 
     A dead actor process, or one whose node was lost, is restarted by Ray (on a node with room for it,
     once there is one: a node that joins later takes it) and its call retried; the pool notices the new
     process or node and logs it. An actor that fails for good is replaced by a new one; only when
-    `MAX_FAILURES_IN_A_ROW` batches fail with none finishing in between does the pool give up.
+    `Calls.MAX_FAILURES_IN_A_ROW` batches fail with none finishing in between does the pool give up.
 
     What an actor plays (the spec and the replay buffer's handle) is put in Ray's object store once and
     travels by reference with every call, not in the constructor: Ray does not keep an actor's
     constructor arguments alive for its restarts (ray-project/ray#53727), while a retried call brings
     its own arguments. The driver owns those objects, so they live as long as the driver's node."""
 
-    MAX_FAILURES_IN_A_ROW = 10
-
     def __init__(
         self,
-        spec: TaskSpec | TaskSet,
+        workload: Workload,
         net: NetConfig,
         mcts: MCTSConfig,
         method: str,
@@ -137,8 +190,10 @@ class ActorPool:
             scheduling_strategy="SPREAD",
             runtime_env={"env_vars": actor_env(layout.threads, gpu=layout.gpus > 0)},
         )
-        self.seed, self.started = seed, 0
-        self.setup = [ray.put((PlaySpec(spec, net, mcts, method, layout.episodes, layout.groups), buffer))]
+        self.seed, self.started, self.layout = seed, 0, layout
+        self.setup = [
+            ray.put((PlaySpec(workload, net, mcts, method, layout.episodes, layout.groups), buffer))
+        ]
         self.actors = [self._start() for _ in range(layout.actors)]
         self.number = {a: i + 1 for i, a in enumerate(self.actors)}  # for the log: actor 1, 2, ...
         try:
@@ -151,9 +206,8 @@ class ActorPool:
             ) from None
         self.places: dict = dict(zip(self.actors, places))
         log.info("self-play actors: %s", placement_summary([node for _, node in places]))
-        self.inflight: dict = {}
+        self.calls = Calls()  # tagged with the weights version each batch plays
         self.displaced: set = set()  # actors whose node was lost, until they report from a new one
-        self.failures_in_a_row = 0
 
     def _start(self):
         """A new actor, with a seed of its own (a replacement does not replay its predecessor's games)."""
@@ -162,7 +216,7 @@ class ActorPool:
         return SelfPlayActor.options(**self.options).remote(self.seed + self.started - 1)  # type: ignore[attr-defined]
 
     def submit(self, actor, weights: list, version: int) -> None:
-        self.inflight[actor.run.remote(self.setup, weights, version)] = (actor, version)
+        self.calls.submit(actor, actor.run.remote(self.setup, weights, version), version)
 
     def submit_all(self, weights: list, version: int) -> None:
         for actor in self.actors:
@@ -171,7 +225,7 @@ class ActorPool:
     def oldest_version(self) -> int | None:
         """The oldest weights version in flight, of the actors whose node is alive: an actor waiting for
         a node to restart on must not hold the learner back."""
-        return min((v for a, v in self.inflight.values() if a not in self.displaced), default=None)
+        return min((v for a, v in self.calls.inflight.values() if a not in self.displaced), default=None)
 
     def node_lost(self, node: str) -> int:
         """Mark the actors that ran on `node` as waiting for a restart elsewhere; returns how many."""
@@ -182,19 +236,12 @@ class ActorPool:
     def collect(self, timeout: float, weights: list | None = None) -> list[tuple[object, PlayStats]]:
         """The batches finished within `timeout` seconds (at most one wait), with their actors. An actor
         that failed for good is replaced, and the replacement handed `weights` (the newest)."""
-        ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=timeout)
-        done = []
-        for ref in ready:
-            actor, version = self.inflight.pop(ref)
-            try:
-                stats = ray.get(ref)
-            except RayActorError as exc:
-                self._replace(actor, str(exc).splitlines()[0], weights, version)
-                continue
-            self.failures_in_a_row = 0
+        done, failed = self.calls.wait(timeout)
+        for actor, version, why in failed:
+            self._replace(actor, why, weights, version)
+        for actor, _, stats in done:
             self._note_place(actor, stats)
-            done.append((actor, stats))
-        return done
+        return [(actor, stats) for actor, _, stats in done]
 
     def _note_place(self, actor, stats: PlayStats) -> None:
         before = self.places.get(actor)
@@ -214,12 +261,6 @@ class ActorPool:
         self.displaced.discard(actor)
 
     def _replace(self, actor, why: str, weights: list | None, version: int) -> None:
-        self.failures_in_a_row += 1
-        if self.failures_in_a_row > self.MAX_FAILURES_IN_A_ROW:
-            raise RLLockError(
-                f"self-play actors failed {self.failures_in_a_row} times in a row with no batch finished "
-                f"(the last: {why}); see the log above"
-            )
         number = self.number.pop(actor)
         self.places.pop(actor, None)
         self.displaced.discard(actor)
@@ -232,7 +273,7 @@ class ActorPool:
             self.submit(replacement, weights, version)
 
     def alive(self) -> bool:
-        return bool(self.inflight)
+        return bool(self.calls)
 
     def nodes_in_use(self) -> set[str]:
         return {node for _, node in self.places.values()}
@@ -240,16 +281,12 @@ class ActorPool:
     def shutdown(self, settle_s: float = 10.0) -> None:
         """Stop every actor now; batches in flight are dropped. They are cancelled before their actors
         are killed: otherwise Ray counts each as a failed call to retry, and logs it."""
-        calls = list(self.inflight)
-        for ref in calls:
-            ray.cancel(ref)
+        self.calls.cancel_all()
         for actor in self.actors:
             ray.kill(actor)
         # ray.kill returns before the actors are gone: wait for the cancelled calls to end, so that a
         # ray.shutdown right after does not race their endings.
-        if calls:
-            ray.wait(calls, num_returns=len(calls), timeout=settle_s)
-        self.inflight.clear()
+        self.calls.settle(settle_s)
 
 
 def describe_node(node_id: str) -> str:

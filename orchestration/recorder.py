@@ -16,7 +16,9 @@ from tensorboardX import SummaryWriter
 from rllock.config import TrainConfig, to_json
 from rllock.core.env import Task
 from rllock.files import checkpoint as ckpt
+from rllock.files import orbax_io
 from rllock.files.assembly import write_assembly
+from rllock.files.provenance import portable, provenance
 from rllock.files.render import write_picture
 
 log = logging.getLogger(__name__)
@@ -71,21 +73,21 @@ class Recorder:
         the provenance of the processes that trained this run before (when resumed). The metadata names
         the log directory as `checkpoint.portable` does: a checkpoint carries no machine's paths."""
         self.logdir, self.task = logdir, task
-        self.config = dataclasses.replace(config, logdir=ckpt.portable(config.logdir))
-        self.sessions = [*sessions, ckpt.provenance()]
+        self.config = dataclasses.replace(config, logdir=portable(config.logdir))
+        self.sessions = [*sessions, provenance()]
         logdir.mkdir(parents=True, exist_ok=True)
         # purge_step drops events logged after the checkpoint we resume from, so the curves do not fork.
         self.writer = SummaryWriter(str(logdir), purge_step=step if resume else None)
         self.writer.add_text("config", "```\n" + json.dumps(to_json(config), indent=1) + "\n```", step)
-        self.latest = ckpt.manager(logdir / "checkpoints", keep=3)
-        self.best = ckpt.manager(logdir / "best", keep=1)
+        self.latest = orbax_io.manager(logdir / "checkpoints", keep=3)
+        self.best = orbax_io.manager(logdir / "best", keep=1)
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         for tag, value in values.items():
             self.writer.add_scalar(tag, value, step)
 
     def checkpoint(self, step: int, state, validation: dict | None, counters: Counters) -> None:
-        ckpt.save(
+        orbax_io.save(
             self.latest,
             step,
             state,
@@ -101,7 +103,7 @@ class Recorder:
         assembly: tuple[Task, np.ndarray] | None,
     ) -> None:
         """`assembly`: a valid assembly of the validation (its task and labels grid) to keep beside it."""
-        ckpt.save(
+        orbax_io.save(
             self.best,
             step,
             state,

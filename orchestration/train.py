@@ -21,111 +21,55 @@ buffer. Ctrl-C stops cleanly: a final checkpoint and snapshot, then Ray is shut 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import signal
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
 import ray
-from ray.exceptions import RayTaskError
 
-from actors.selfplay import TaskSpec
 from learner.learner import Learner
-from learner.replay import ReplayBuffer
 from orchestration import validation
-from orchestration.pacing import Pacing, Schedule, final_reserve, validation_estimate
-from orchestration.pool import (
-    ActorPool,
-    NodeWatch,
-    describe_node,
-    driver_node,
-    driver_node_cpus,
-    largest_node_cpus,
-    on_driver_node,
-    plan_layout,
-    start_ray,
-)
-from orchestration.recorder import Counters, Recorder, best_rank
+from orchestration.builder import Start, start_buffer, start_learner, start_pool, workload_of
+from orchestration.pacing import Pacing, Schedule, final_reserve
+from orchestration.pool import NodeWatch, start_ray
+from orchestration.recorder import Recorder
+from orchestration.validation import Score
 from rllock.config import TrainConfig
-from rllock.core.env import Task, compact_dtypes, make_task
-from rllock.core.feasibility import check_feasible
-from rllock.core.tasks import TaskSet, parse_tasks
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.process import peak_rss_mb
-from rllock.search.inference import load_network
-from rllock.search.methods import space
-from rllock.search.network import fit_canvas
+from rllock.search.workload import Workload
 
 log = logging.getLogger(__name__)
 
 
-def _restore_latest(logdir: Path, learner: Learner) -> ckpt.Metadata:
-    """Load the newest readable checkpoint into `learner`; returns its metadata."""
-    for step in ckpt.saved_steps(logdir / "checkpoints")[::-1]:
-        step_dir = logdir / "checkpoints" / str(step)
-        try:
-            meta = ckpt.read_metadata(step_dir)
-            learner.load_state(ckpt.restore_like(step_dir, learner.state()))
-        except RLLockError as exc:
-            log.warning("%s; falling back to the checkpoint before it", exc)
-            continue
-        return meta
-    raise RLLockError(f"cannot resume {logdir}: every checkpoint is unreadable")
+@dataclass(frozen=True)
+class TrainResult:
+    """What a run did (`train`'s return value)."""
+
+    steps: int
+    episodes: int
+    selfplay_success_rate: float
+    validation: Score | None  # the last validation's
+    best_success_rate: float  # -1: none yet
+    seconds: float
+    episodes_per_sec: float
+    simulations_per_sec: float
+    actors: int
+    logdir: str
+    interrupted: bool
+    stop_signal: int | None  # the signal that stopped the run (SIGINT or SIGTERM)
+    peak_rss_mb: dict[str, float]  # peak resident MiB of the driver, the buffer and an actor
 
 
-def _setup(
-    config: TrainConfig, *, resume: bool = False
-) -> tuple[TrainConfig, Task | None, TaskSet | None, dict, ckpt.Checkpoint | None]:
-    """(the config with a concrete network, the task or the task set, what the run is for, and the
-    checkpoint to start from when --init names one, its parameters not read yet: no JAX array is made
-    here). A resumed run's saved config already holds the --init checkpoint's network settings, so that
-    checkpoint is not read again."""
-    init = None
-    net = config.net
-    if config.init is not None and not resume:
-        init = ckpt.open_checkpoint(config.init)
-        net = init.metadata.config.net
-        if config.net.canvas is not None:
-            # The U-Net's weights do not depend on the canvas side, so a generalist trained on a large
-            # canvas can be fine-tuned on the smallest one that fits the task, where search is cheaper.
-            net = dataclasses.replace(net, canvas=config.net.canvas)
-    if config.tasks is not None:
-        tasks = parse_tasks(config.tasks, canvas=net.canvas, removal=config.removal, step=net.levels_step())
-        net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)
-        return dataclasses.replace(config, net=net), None, tasks, tasks.identity(), init
-    assert config.shape is not None and config.pieces is not None
-    task = make_task(config.shape, config.pieces, config.removal, resolution=config.resolution)
-    check_feasible(task)
-    canvas_of = (
-        None if init is None or config.net.canvas is not None else f"the --init checkpoint {config.init}"
-    )
-    net = fit_canvas(task, net, canvas_of)
-    return dataclasses.replace(config, net=net), task, None, ckpt.task_identity(task, net.canvas_side()), init
-
-
-def _resume(logdir: Path, learner: Learner, identity: dict) -> tuple[Counters, dict | None, list[dict]]:
-    """Restore the newest readable checkpoint of `logdir` into `learner`; (its counters, its last
-    validation, the sessions that trained the run)."""
-    meta = _restore_latest(logdir, learner)
-    ckpt.check_same_task(meta.task, identity, logdir)
-    counters = Counters(**meta.counters)
-    # The best checkpoint may be newer than the latest readable one: its own score is the bar.
-    counters.best_rate, counters.best_return = max(
-        (counters.best_rate, counters.best_return), best_rank(logdir)
-    )
-    log.info("resuming %s at learner step %d (%d episodes so far)", logdir, learner.step, counters.episodes)
-    return counters, meta.validation, list(meta.sessions)
-
-
-def train(config: TrainConfig, *, resume: bool = False) -> dict:
+def train(config: TrainConfig, *, resume: bool = False) -> TrainResult:
     began = time.monotonic()
     config.validate()
-    config, task, tasks, identity, init = _setup(config, resume=resume)
+    config, workload, init = workload_of(config, resume=resume)
     logdir = Path(config.logdir)
     if not resume and ckpt.saved_steps(logdir / "checkpoints"):
         raise RLLockError(
@@ -136,93 +80,67 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict:
     # threads, with the learner's first array, that can deadlock. So Ray starts first.
     started_ray = start_ray(config.address)
     try:
-        return _train(config, task, tasks, identity, init, resume, began)
+        learner, start = start_learner(config, workload, init, resume)
+        recorder = Recorder(logdir, config, workload.identity(), learner.step, resume, start.sessions)
+        run = _Run(config, workload, learner, recorder, start, began)
+        # SIGTERM (`kill`, `ray job stop`, a scheduler) stops a run as Ctrl-C does: a final checkpoint first.
+        previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            return run.loop(resume)
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+            recorder.close()
+            if run.interrupted:
+                log.warning(
+                    "stopped by %s at learner step %d; checkpoint saved. Resume with: "
+                    "rllock train --resume %s",
+                    _signal_name(run.stop_signal),
+                    learner.step,
+                    logdir,
+                )
     finally:
         if started_ray:
             ray.shutdown()
-
-
-def _train(
-    config: TrainConfig,
-    task: Task | None,
-    tasks: TaskSet | None,
-    identity: dict,
-    init: ckpt.Checkpoint | None,
-    resume: bool,
-    began: float,
-) -> dict:
-    logdir = Path(config.logdir)
-    learner = Learner(task, config.net, config.learner, jax.random.PRNGKey(config.seed), config.method)
-    counters, last_score = Counters(), None
-    sessions: list[dict] = []
-    if resume:
-        counters, last_score, sessions = _resume(logdir, learner, identity)
-    elif init is not None:
-        learner.start_from(load_network(init)[2])
-        log.info("starting from the network of %s", config.init)
-    recorder = Recorder(logdir, config, task or identity, learner.step, resume, sessions)
-    run = _Run(config, task, tasks, learner, recorder, counters, last_score, began)
-    # SIGTERM (`kill`, `ray job stop`, a scheduler) stops a run as Ctrl-C does: a final checkpoint first.
-    previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return run.loop(resume)
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-        recorder.close()
-        if run.interrupted:
-            log.warning(
-                "stopped by %s at learner step %d; checkpoint saved. Resume with: rllock train --resume %s",
-                _signal_name(run.stop_signal),
-                learner.step,
-                logdir,
-            )
 
 
 def _signal_name(signum: int | None) -> str:
     return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum or signal.SIGTERM).name
 
 
-def _buffer_shape(
-    config: TrainConfig, task: Task | None, tasks: TaskSet | None
-) -> tuple[tuple[int, ...], tuple[type[np.signedinteger], type[np.signedinteger]]]:
-    """The replay buffer's transition shape (states, candidates, piece size) and its two dtypes."""
-    if tasks is None:
-        assert task is not None
-        return (task.size, *space(config.method).action_shape(task, config.mcts)), compact_dtypes(task)
-    # canvas states (rllock.search.canvas)
-    return (tasks.store_canvas**3, config.mcts.candidates, tasks.max_piece_size()), (np.int8, np.int16)
+@dataclass
+class _Progress:
+    """What the loop has seen of self-play: the policy lag, the fastest batch (the first includes
+    compiling; it sizes a validation), the buffer's successful transitions and peak memory."""
+
+    lag: int = 0
+    batch_seconds: float | None = None
+    buffer_successes: int = 0
+    memory: dict[str, float] = field(default_factory=lambda: {"driver": 0.0, "buffer": 0.0, "actor": 0.0})
 
 
 class _Run:
-    """The actor-learner loop's state: what a checkpoint must capture, in one place."""
+    """The actor-learner loop: self-play batches in, learner steps, published weights, checkpoints and
+    validations on schedule; its state is what a checkpoint must capture."""
 
     def __init__(
         self,
         config: TrainConfig,
-        task: Task | None,
-        tasks: TaskSet | None,
+        workload: Workload,
         learner: Learner,
         recorder: Recorder,
-        counters: Counters,
-        last_score: dict | None,
+        start: Start,
         began: float,
     ):
-        self.config, self.task, self.tasks = config, task, tasks
-        self.learner, self.recorder = learner, recorder
-        self.counters, self.last_score = counters, last_score
+        self.config, self.workload = config, workload
+        self.learner, self.recorder, self.counters = learner, recorder, start.counters
         self.pacing = Pacing.of(config)
         self.began = began
         self.schedule = Schedule.start(began, config)
-        self.validation_plan = validation.Plan.of(config, task, tasks)
+        self.validator = validation.Validator(validation.Plan.of(config, workload), start.last_score)
+        self.progress = _Progress()
         self.interrupted = False
-        self.stop_signal: int | None = None  # the signal that stopped the run (SIGINT or SIGTERM)
-        self.lag = 0
-        # The fastest self-play batch so far (the first includes compiling), to estimate a validation.
-        self.batch_seconds: float | None = None
-        self.validation_seconds: float | None = None
-        self.buffer_successes = 0
-        self.memory = {"driver": 0.0, "buffer": 0.0, "actor": 0.0}  # peak resident MiB per process kind
+        self.stop_signal: int | None = None
 
     def request_stop(self, signum, frame) -> None:
         del frame
@@ -231,17 +149,17 @@ class _Run:
         self.interrupted, self.stop_signal = True, signum
         log.warning("%s: saving a checkpoint and stopping (again to abort)", _signal_name(signum))
 
-    def loop(self, resume: bool) -> dict:
-        self.buffer = self._start_buffer(resume)
-        pool = self._start_pool()
+    def loop(self, resume: bool) -> TrainResult:
+        self.buffer: Any = start_buffer(self.config, self.workload, self.recorder, resume)
+        self.pool = start_pool(self.config, self.workload, self.buffer, self.counters.episodes)
         try:
-            self._selfplay(pool)
+            self._selfplay()
             if self.interrupted:
                 # SIGKILL may follow a SIGTERM within seconds (`ray job stop` waits 3 s unless the head
                 # was started with RAY_JOB_STOP_WAIT_TIME_S): the checkpoint comes before anything else.
                 self._final_checkpoint()
         finally:
-            pool.shutdown()  # batches under way are dropped: the budget is a hard limit
+            self.pool.shutdown()  # batches under way are dropped: the budget is a hard limit
         if not self.interrupted:
             self._validate_if_it_fits(time.monotonic(), final=True)
             self._final_checkpoint()
@@ -251,102 +169,33 @@ class _Run:
         self._charts()  # the curves end at the final step
         self._checkpoint()
 
-    def _start_buffer(self, resume: bool) -> Any:
-        """The replay buffer actor, holding the run's snapshot when resumed. Its handle is Any: Ray types an
-        ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
-        shape, dtypes = _buffer_shape(self.config, self.task, self.tasks)
-        # It snapshots into the run's folder, so it runs where the folder is: the driver's node.
-        buffer: Any = (
-            ray.remote(num_cpus=0)(ReplayBuffer)
-            .options(scheduling_strategy=on_driver_node())
-            .remote(
-                self.config.buffer_capacity,
-                *shape,
-                *dtypes,
-                store_canvas=None if self.tasks is None else self.tasks.store_canvas,
-            )
-        )
-        snapshot = self.recorder.logdir / "replay.npz"
-        if resume and snapshot.exists():
-            try:
-                restored = ray.get(buffer.restore.remote(str(snapshot)))
-            except RayTaskError as exc:  # the buffer actor's own error, without Ray's traceback around it
-                cause = exc.cause if isinstance(exc.cause, RLLockError) else None
-                raise RLLockError(str(cause or exc).splitlines()[0]) from None
-            log.info("replay buffer restored: %d transitions", restored)
-        log.info("learner and replay buffer on %s, with the run's folder", describe_node(driver_node()))
-        return buffer
-
-    def _start_pool(self) -> ActorPool:
-        """The self-play actors, laid out over the cluster's free CPUs and GPUs."""
-        config = self.config
-        resources = ray.cluster_resources()
-        self.layout = layout = plan_layout(
-            config.selfplay,
-            cpus=resources.get("CPU", 1),
-            gpus=resources.get("GPU", 0),
-            # the learner's core, where it is a Ray CPU: a head started with --num-cpus=0 lends none
-            reserved_cpus=min(1.0, driver_node_cpus()),
-            node_cpus=largest_node_cpus(),
-        )
-        spec, described = self._played()
-        pool = ActorPool(
-            spec,
-            config.net,
-            config.mcts,
-            config.method,
-            layout,
-            config.seed * 1000 + 1 + self.counters.episodes,
-            self.buffer,
-        )
-        log.info(
-            "training %s: %d self-play actor(s) (%s, %d episodes each, %d thread(s)) for %g min; logs in %s",
-            described,
-            layout.actors,
-            layout.mode,
-            layout.episodes,
-            layout.threads,
-            config.minutes,
-            self.recorder.logdir,
-        )
-        return pool
-
-    def _played(self) -> tuple[TaskSpec | TaskSet, str]:
-        """What the self-play actors play, and its name for the log."""
-        if self.tasks is not None:
-            return self.tasks, f"tasks {self.tasks.spec}"
-        if self.task is None:
-            raise ValueError("a run needs a task or a task set")
-        return TaskSpec.of(self.task), f"{self.task.shape_name} K={self.task.pieces}"
-
-    def _selfplay(self, pool: ActorPool) -> None:
+    def _selfplay(self) -> None:
         """Self-play and learn until a stop signal, the last learner step, or the end of the budget less
         what the final validation needs."""
         c, learner = self.counters, self.learner
         weights = [ray.put(jax.device_get(learner.params))]
-        pool.submit_all(weights, c.version)
+        self.pool.submit_all(weights, c.version)
         start, base_seconds = time.monotonic(), c.seconds
         nodes = NodeWatch.start()
         while (
             not self.interrupted and self._selfplay_time_left() and not self.pacing.reached_max(learner.step)
         ):
-            weights = self._turn(pool, weights)
+            weights = self._turn(weights)
             c.seconds = base_seconds + time.monotonic() - start
-            nodes.check(time.monotonic(), pool)
+            nodes.check(time.monotonic(), self.pool)
             self._periodic(time.monotonic())
         c.seconds = base_seconds + time.monotonic() - start
 
     def _selfplay_time_left(self) -> bool:
         """Whether the budget has time left once the final validation's share is kept for it."""
-        return not self.schedule.over(
-            time.monotonic() + final_reserve(self._validation_estimate(), self.config)
-        )
+        reserve = final_reserve(self._validation_estimate(), self.config)
+        return not self.schedule.over(time.monotonic() + reserve)
 
-    def _turn(self, pool: ActorPool, weights: list[ray.ObjectRef]) -> list[ray.ObjectRef]:
+    def _turn(self, weights: list[ray.ObjectRef]) -> list[ray.ObjectRef]:
         """Collect the finished batches (waiting up to 1 s for one when the learner may not step), hand
         their actors the current weights, then take a learner step if pacing allows; returns the weights
         to hand out next."""
-        c, learner = self.counters, self.learner
+        c, learner, pool = self.counters, self.learner, self.pool
         oldest = pool.oldest_version()
         can_learn = self.pacing.can_learn(
             step=learner.step,
@@ -362,53 +211,47 @@ class _Run:
             return [ray.put(jax.device_get(learner.params))]
         return weights
 
-    def _result(self) -> dict:
-        c = self.counters
-        return {
-            "steps": self.learner.step,
-            "episodes": c.episodes,
-            "selfplay_success_rate": c.successes / max(c.episodes, 1),
-            "validation": self.last_score,
-            "best_success_rate": c.best_rate,
-            "seconds": time.monotonic() - self.began,
-            "episodes_per_sec": c.episodes / max(c.seconds, 1e-9),
-            "simulations_per_sec": c.simulations / max(c.seconds, 1e-9),
-            "actors": self.layout.actors,
-            "logdir": str(self.recorder.logdir),
-            "interrupted": self.interrupted,
-            "stop_signal": self.stop_signal,
-            "peak_rss_mb": dict(self.memory),
-        }
+    def _result(self) -> TrainResult:
+        c, seconds = self.counters, max(self.counters.seconds, 1e-9)
+        return TrainResult(
+            steps=self.learner.step,
+            episodes=c.episodes,
+            selfplay_success_rate=c.successes / max(c.episodes, 1),
+            validation=self.validator.last,
+            best_success_rate=c.best_rate,
+            seconds=time.monotonic() - self.began,
+            episodes_per_sec=c.episodes / seconds,
+            simulations_per_sec=c.simulations / seconds,
+            actors=self.pool.layout.actors,
+            logdir=str(self.recorder.logdir),
+            interrupted=self.interrupted,
+            stop_signal=self.stop_signal,
+            peak_rss_mb=dict(self.progress.memory),
+        )
 
     def _count(self, stats) -> None:
-        c = self.counters
+        c, p = self.counters, self.progress
         c.add(stats)
-        self.lag = c.version - stats.version
-        self.batch_seconds = min(stats.seconds, self.batch_seconds or stats.seconds)
-        self.memory["actor"] = max(self.memory["actor"], stats.peak_rss_mb)
-        buffer_stats: dict[str, float] = ray.get(self.buffer.stats.remote())
-        c.transitions = int(buffer_stats["added"])
-        self.buffer_successes = int(buffer_stats["successes"])
-        self.memory["buffer"] = buffer_stats["peak_rss_mb"]
+        p.lag = c.version - stats.version
+        p.batch_seconds = min(stats.seconds, p.batch_seconds or stats.seconds)
+        p.memory["actor"] = max(p.memory["actor"], stats.peak_rss_mb)
+        c.transitions = stats.buffer.added
+        p.buffer_successes = stats.buffer.successes
+        p.memory["buffer"] = stats.buffer.peak_rss_mb
 
     def _learn(self) -> bool:
         """One learner step; True when it published a new weights version."""
         learner, c = self.learner, self.counters
-        sample: dict[str, np.ndarray] = ray.get(
+        sample: dict = ray.get(
             self.buffer.sample.remote(
                 self.config.learner.batch_size, learner.next_seed(), self.config.success_fraction
             )
         )
         losses = learner.update(sample)
         if learner.step % 10 == 0 or learner.step == 1:
-            self.recorder.scalars(
-                {
-                    "losses/policy": losses["policy"],
-                    "losses/value": losses["value"],
-                    "losses/total": losses["policy"] + losses["value"],
-                },
-                learner.step,
-            )
+            policy, value = losses["policy"], losses["value"]
+            scalars = {"losses/policy": policy, "losses/value": value, "losses/total": policy + value}
+            self.recorder.scalars(scalars, learner.step)
         if learner.step % self.config.publish_every == 0:
             c.version += 1
             return True
@@ -418,20 +261,7 @@ class _Run:
         step, schedule = self.learner.step, self.schedule
         if schedule.report_due(now):
             self._charts()
-            c = self.counters
-            log.info(
-                "step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | "
-                "peak MiB driver %.0f buffer %.0f actor %.0f | %.0f s",
-                step,
-                c.episodes,
-                100 * c.successes / max(c.episodes, 1),
-                "-" if self.last_score is None else f"{100 * self.last_score['success_rate']:.1f}%",
-                self.lag,
-                self.memory["driver"],
-                self.memory["buffer"],
-                self.memory["actor"],
-                c.seconds,
-            )
+            self._report()
         if schedule.checkpoint_due(now, step):
             self._checkpoint()
             schedule.checkpointed(time.monotonic())
@@ -439,66 +269,60 @@ class _Run:
             self._validate_if_it_fits(now, final=False)
             schedule.validated(time.monotonic())
 
+    def _report(self) -> None:
+        c, p, last = self.counters, self.progress, self.validator.last
+        log.info(
+            "step %d | episodes %d | self-play success %.1f%% | validation %s | lag %d | "
+            "peak MiB driver %.0f buffer %.0f actor %.0f | %.0f s",
+            self.learner.step,
+            c.episodes,
+            100 * c.successes / max(c.episodes, 1),
+            "-" if last is None else f"{100 * last.success_rate:.1f}%",
+            p.lag,
+            p.memory["driver"],
+            p.memory["buffer"],
+            p.memory["actor"],
+            c.seconds,
+        )
+
     def _charts(self) -> None:
-        c, step = self.counters, self.learner.step
-        self.memory["driver"] = peak_rss_mb()
+        c, p, step = self.counters, self.progress, self.learner.step
+        p.memory["driver"] = peak_rss_mb()
         seconds = max(c.seconds, 1e-9)
         self.recorder.scalars(
             {
                 "charts/episodes_per_sec": c.episodes / seconds,
                 "charts/simulations_per_sec": c.simulations / seconds,
                 "charts/learner_steps_per_sec": step / seconds,
-                "charts/policy_lag": self.lag,
+                "charts/policy_lag": p.lag,
                 "charts/selfplay_success_rate": c.successes / max(c.episodes, 1),
                 "buffer/size": min(c.transitions, self.config.buffer_capacity),
-                "buffer/success_transitions": self.buffer_successes,
-                **{f"memory/{kind}_peak_mb": mb for kind, mb in self.memory.items()},
+                "buffer/success_transitions": p.buffer_successes,
+                **{f"memory/{kind}_peak_mb": mb for kind, mb in p.memory.items()},
             },
             step,
         )
 
     def _checkpoint(self) -> None:
         ray.get(self.buffer.snapshot.remote(str(self.recorder.logdir / "replay.npz")))
-        self.recorder.checkpoint(self.learner.step, self.learner.state(), self.last_score, self.counters)
+        last = self.validator.last
+        state = self.learner.state()
+        self.recorder.checkpoint(
+            self.learner.step, state, None if last is None else last.to_json(), self.counters
+        )
 
     def _validation_estimate(self) -> float | None:
-        return validation_estimate(
-            self.batch_seconds,
-            self.layout.episodes,
-            self.layout.groups,
-            self.validation_plan.total_episodes,
-            self.validation_seconds,
-        )
+        return self.validator.estimate(self.progress.batch_seconds, self.pool.layout)
 
     def _validate_if_it_fits(self, now: float, *, final: bool) -> None:
         estimate = self._validation_estimate()
-        if not self.schedule.fits(now, estimate, final=final):
-            need = (
-                "no self-play batch has finished yet to time it"
-                if estimate is None
-                else f"about {estimate:.0f} s of the budget would be needed"
-            )
-            log.info(
-                "%svalidation skipped: %s, %.0f s are left",
-                "final " if final else "",
-                need,
-                max(0.0, self.schedule.deadline - now),
-            )
+        if self.schedule.fits(now, estimate, final=final):
+            self.validator.run(self.learner, self.recorder, self.counters)
             return
-        self._validate()
-
-    def _validate(self) -> None:
-        step, plan = self.learner.step, self.validation_plan
-        result = validation.summarize(plan, validation.play(plan, self.learner.params))
-        score = self.last_score = result.score
-        self.validation_seconds = score["seconds"]
-        self.recorder.scalars(validation.scalars(score), step)
-        log.info(
-            "validation at step %d: %d/%d valid (%.1f%%) in %.0f s",
-            step,
-            score["valid"],
-            score["episodes"],
-            100 * score["success_rate"],
-            score["seconds"],
+        need = (
+            "no self-play batch has finished yet to time it"
+            if estimate is None
+            else f"about {estimate:.0f} s of the budget would be needed"
         )
-        validation.keep_best(result, self.learner, self.recorder, self.counters)
+        left = max(0.0, self.schedule.deadline - now)
+        log.info("%svalidation skipped: %s, %.0f s are left", "final " if final else "", need, left)

@@ -8,6 +8,8 @@ checkpoint; the rest is pure.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -17,12 +19,16 @@ import numpy as np
 
 from actors.selfplay import evaluate
 from learner.learner import Learner
+from orchestration.pacing import validation_estimate
+from orchestration.pool import Layout
 from orchestration.recorder import Counters, Recorder, validation_rank
 from rllock.config import TrainConfig
 from rllock.core.env import Task, final_labels
-from rllock.core.tasks import TaskSet
 from rllock.search.base import Episode, Player
 from rllock.search.methods import players
+from rllock.search.workload import Workload
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -37,24 +43,25 @@ class Plan:
     groups: tuple[str, ...] | None  # multi-task runs: each task's group, as written in --tasks
 
     @staticmethod
-    def of(config: TrainConfig, task: Task | None, tasks: TaskSet | None) -> Plan:
+    def of(config: TrainConfig, workload: Workload) -> Plan:
         seed = config.seed + 7
-        if tasks is not None:
-            chosen = tasks.validation_tasks(seed)
-            nets = [replace(config.net, canvas=group.canvas) for group in tasks.groups]
-        elif task is not None:
-            chosen, nets = [task], [config.net]
-        else:
-            raise ValueError("a run needs a task or a task set")
+        draws = workload.validation(seed)
         return Plan(
-            tasks=tuple(chosen),
+            tasks=tuple(d.task for d in draws),
             searchers=tuple(
-                players(config.method, net, config.mcts, t, config.validation_episodes, 1)
-                for t, net in zip(chosen, nets)
+                players(
+                    config.method,
+                    replace(config.net, canvas=d.canvas),
+                    config.mcts,
+                    d.task,
+                    config.validation_episodes,
+                    1,
+                )
+                for d in draws
             ),
             episodes=config.validation_episodes,
             seed=seed,
-            groups=None if tasks is None else tuple(group.spec for group in tasks.groups),
+            groups=tuple(d.label for d in draws if d.label is not None) or None,
         )
 
     @property
@@ -63,11 +70,42 @@ class Plan:
 
 
 @dataclass(frozen=True)
+class Score:
+    """A validation's score, as checkpoint metadata keeps it (`to_json`): success rate and mean return
+    (means over the tasks), valid episodes, episodes, seconds, seconds per valid one (None when none was
+    valid) and, in a multi-task run, each group's own score by its spec, with its task (`task_score`)."""
+
+    success_rate: float
+    valid: int
+    episodes: int
+    mean_return: float
+    seconds: float
+    time_per_valid_s: float | None
+    groups: dict[str, dict] | None = None
+
+    def to_json(self) -> dict:
+        doc = dataclasses.asdict(self)
+        return doc if self.groups is not None else {k: v for k, v in doc.items() if k != "groups"}
+
+    @staticmethod
+    def from_json(doc: dict) -> Score:
+        return Score(
+            float(doc.get("success_rate", 0.0)),
+            int(doc.get("valid", 0)),
+            int(doc.get("episodes", 0)),
+            float(doc.get("mean_return", 0.0)),
+            float(doc.get("seconds", 0.0)),
+            doc.get("time_per_valid_s"),
+            doc.get("groups"),
+        )
+
+    def rank(self) -> tuple[float, float]:
+        return validation_rank(self.to_json())
+
+
+@dataclass(frozen=True)
 class Result:
-    score: dict
-    """As checkpoint metadata and `train` keep it: success_rate and mean_return (means over the tasks),
-    valid, episodes, seconds, time_per_valid_s (None when no episode was valid) and, in a multi-task run,
-    groups: each group's own score by its spec, with its task (`task_score`)."""
+    score: Score
     first_win: tuple[Task, Episode] | None
     """The first valid episode with its task: the assembly kept beside a best checkpoint."""
 
@@ -97,31 +135,30 @@ def summarize(plan: Plan, played: list[tuple[list[Episode], float]]) -> Result:
     scores = [task_score(task, episodes, seconds) for task, (episodes, seconds) in zip(plan.tasks, played)]
     valid = sum(s["valid"] for s in scores)
     seconds = sum(s["seconds"] for s in scores)
-    score = {
-        "success_rate": float(np.mean([s["success_rate"] for s in scores])),
-        "valid": valid,
-        "episodes": sum(s["episodes"] for s in scores),
-        "mean_return": float(np.mean([s["mean_return"] for s in scores])),
-        "seconds": seconds,
-        "time_per_valid_s": seconds / valid if valid else None,
-    }
-    if plan.groups is not None:
-        score["groups"] = dict(zip(plan.groups, scores))
+    score = Score(
+        success_rate=float(np.mean([s["success_rate"] for s in scores])),
+        valid=valid,
+        episodes=sum(s["episodes"] for s in scores),
+        mean_return=float(np.mean([s["mean_return"] for s in scores])),
+        seconds=seconds,
+        time_per_valid_s=seconds / valid if valid else None,
+        groups=None if plan.groups is None else dict(zip(plan.groups, scores)),
+    )
     wins = ((task, e) for task, (episodes, _) in zip(plan.tasks, played) for e in episodes if e.success)
     return Result(score, next(wins, None))
 
 
-def scalars(score: dict) -> dict[str, float]:
+def scalars(score: Score) -> dict[str, float]:
     """The TensorBoard scalars of a validation: each group's (multi-task runs), then the means."""
     values = {}
-    for group, s in score.get("groups", {}).items():
+    for group, s in (score.groups or {}).items():
         tag = re.sub(r"[^\w.\-]", "_", group)  # TensorBoard's tag characters: cube4_6-9
         values[f"validation/{tag}/success_rate"] = s["success_rate"]
         values[f"validation/{tag}/mean_return"] = s["mean_return"]
-    values["validation/success_rate"] = score["success_rate"]
-    values["validation/mean_return"] = score["mean_return"]
-    if score["valid"]:
-        values["validation/time_per_valid_s"] = score["time_per_valid_s"]
+    values["validation/success_rate"] = score.success_rate
+    values["validation/mean_return"] = score.mean_return
+    if score.time_per_valid_s is not None:
+        values["validation/time_per_valid_s"] = score.time_per_valid_s
     return values
 
 
@@ -137,9 +174,40 @@ def keep_best(result: Result, learner: Learner, recorder: Recorder, counters: Co
     """Save `learner` as the best checkpoint, with the first valid assembly, when the validation ranks
     above the best so far (`recorder.validation_rank`) or there is no best checkpoint yet; the bar in
     `counters` never drops."""
-    best, rank = (counters.best_rate, counters.best_return), validation_rank(result.score)
+    best, rank = (counters.best_rate, counters.best_return), result.score.rank()
     if rank > best or recorder.best.latest_step() is None:
         counters.best_rate, counters.best_return = max(rank, best)
         recorder.best_checkpoint(
-            learner.step, learner.state(), result.score, counters, assembly(result.first_win)
+            learner.step, learner.state(), result.score.to_json(), counters, assembly(result.first_win)
         )
+
+
+class Validator:
+    """A run's validations: what one is expected to cost, playing it, its scalars, log line and best
+    checkpoint. `last` is the latest score (a resumed run's, until it validates)."""
+
+    def __init__(self, plan: Plan, last: Score | None):
+        self.plan, self.last = plan, last
+        self.seconds: float | None = None  # the last validation's own time
+
+    def estimate(self, batch_seconds: float | None, layout: Layout) -> float | None:
+        """Expected seconds of the next validation (`pacing.validation_estimate`)."""
+        return validation_estimate(
+            batch_seconds, layout.episodes, layout.groups, self.plan.total_episodes, self.seconds
+        )
+
+    def run(self, learner: Learner, recorder: Recorder, counters: Counters) -> Score:
+        result = summarize(self.plan, play(self.plan, learner.params))
+        score = self.last = result.score
+        self.seconds = score.seconds
+        recorder.scalars(scalars(score), learner.step)
+        log.info(
+            "validation at step %d: %d/%d valid (%.1f%%) in %.0f s",
+            learner.step,
+            score.valid,
+            score.episodes,
+            100 * score.success_rate,
+            score.seconds,
+        )
+        keep_best(result, learner, recorder, counters)
+        return score

@@ -50,14 +50,17 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
 
     from learner.learner import Learner, LearnerConfig
     from rllock.files import checkpoint as ckpt
+    from rllock.files import orbax_io
+    from rllock.files.provenance import provenance
+    from rllock.search.workload import SingleTask
 
     task = make_task(shape, pieces)
-    learner = Learner(task, net, LearnerConfig(), jax.random.PRNGKey(3), method)
+    learner = Learner(SingleTask.of(task, net.canvas), net, LearnerConfig(), jax.random.PRNGKey(3), method)
     config = TrainConfig(shape=shape, pieces=pieces, method=method, net=net, mcts=mcts, init=init)
-    mngr = ckpt.manager(run / "best", keep=1)
+    mngr = orbax_io.manager(run / "best", keep=1)
     counters = {"seconds": seconds, "episodes": 40}
-    meta = ckpt.Metadata.of(config, task, step, validation, counters, [ckpt.provenance()])
-    ckpt.save(mngr, step, learner.state(), meta)
+    meta = ckpt.Metadata.of(config, task, step, validation, counters, [provenance()])
+    orbax_io.save(mngr, step, learner.state(), meta)
     mngr.close()
     return learner
 
@@ -70,14 +73,17 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     from learner.learner import Learner, LearnerConfig
     from rllock.core.tasks import parse_tasks
     from rllock.files import checkpoint as ckpt
+    from rllock.files import orbax_io
+    from rllock.files.provenance import provenance
+    from rllock.search.workload import ManyTasks
 
     tasks = parse_tasks(spec, canvas=net.canvas)
     net = dataclasses.replace(net, canvas=tasks.canvas, task_planes=True)
-    learner = Learner(None, net, LearnerConfig(), jax.random.PRNGKey(3))
+    learner = Learner(ManyTasks(tasks), net, LearnerConfig(), jax.random.PRNGKey(3))
     config = TrainConfig(tasks=spec, net=net, mcts=mcts)
-    mngr = ckpt.manager(run / "best", keep=1)
-    meta = ckpt.Metadata.of(config, tasks.identity(), step, None, {}, [ckpt.provenance()])
-    ckpt.save(mngr, step, learner.state(), meta)
+    mngr = orbax_io.manager(run / "best", keep=1)
+    meta = ckpt.Metadata.of(config, tasks.identity(), step, None, {}, [provenance()])
+    orbax_io.save(mngr, step, learner.state(), meta)
     mngr.close()
     return learner
 

@@ -13,16 +13,17 @@ from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files.assembly import read_assembly
-from rllock.search.inference import MAX_CANVAS, generate, load_policy
+from rllock.search.inference import generate, load_policy
+from rllock.search.serving import MAX_CANVAS
 
 
 def test_general_plays_a_shape_larger_than_its_canvas_on_the_smallest_canvas_that_fits():
     task = make_task("box:9x3x2", 3)  # 9 > 8: general's own 8^3 canvas is too small
-    policy = load_policy("general", task=task)
+    policy = load_policy("general", task)
     assert policy.net.canvas == 12  # the next multiple of the U-Net's level step
-    assert load_policy("general", task=make_task("cube5", 13)).net.canvas == 8  # its own where it fits
+    assert load_policy("general", make_task("cube5", 13)).net.canvas == 8  # its own where it fits
     with pytest.raises(RLLockError, match=f"largest canvas .* plays on \\({MAX_CANVAS}\\^3\\)"):
-        load_policy("general", task=make_task(f"box:{MAX_CANVAS + 1}x2x2", 4))
+        load_policy("general", make_task(f"box:{MAX_CANVAS + 1}x2x2", 4))
 
 
 def test_a_checkpoint_trained_on_several_canvases_plays_each_shape_on_the_smallest_that_fits(
@@ -31,17 +32,17 @@ def test_a_checkpoint_trained_on_several_canvases_plays_each_shape_on_the_smalle
     net = NetConfig(canvas=4, features=(4, 8))
     save_multitask_run(tmp_path / "run", "cube3:3,box:5x4x3:4@8", net=net, mcts=MCTSConfig(simulations=4))
     with caplog.at_level(logging.INFO, logger="rllock.search.inference"):
-        assert load_policy(tmp_path / "run", task=make_task("cube4", 4)).net.canvas == 4
-        assert load_policy(tmp_path / "run", task=make_task("box:6x2x2", 3)).net.canvas == 8
+        assert load_policy(tmp_path / "run", make_task("cube4", 4)).net.canvas == 4
+        assert load_policy(tmp_path / "run", make_task("box:6x2x2", 3)).net.canvas == 8
         assert "was trained on" not in caplog.text  # 4^3 and 8^3 are its own canvases
-        assert load_policy(tmp_path / "run", task=make_task("box:9x2x2", 3)).net.canvas == 10
+        assert load_policy(tmp_path / "run", make_task("box:9x2x2", 3)).net.canvas == 10
     assert "was trained on 4^3, 8^3 canvases; it plays box:9x2x2 on 10^3" in caplog.text
 
 
 @pytest.mark.slow
 def test_general_generates_verified_assemblies_zero_shot_on_a_larger_canvas(tmp_path):
     task = make_task("box:9x3x2", 3)
-    policy = load_policy("general", task=task)
+    policy = load_policy("general", task)
     result = generate(policy, count=1, batch=4, time_limit=120, seed=0, out=tmp_path, progress=False)
     assert result.valid >= 1
     labels, _ = read_assembly(next(tmp_path.glob("*/assembly.json")))

@@ -175,8 +175,8 @@ def test_a_checkpoint_for_another_task_is_refused_in_words(tmp_path):
 
 def test_another_canvas_or_grid_is_named_where_the_words_would_be_equal():
     from rllock.core.env import make_task
+    from rllock.core.identity import check_same_task, task_identity
     from rllock.errors import RLLockError
-    from rllock.files.checkpoint import check_same_task, task_identity
 
     cube = task_identity(make_task("cube4", 7), 4)
     with pytest.raises(RLLockError, match=r"K=7, removal straight, on a 4\^3 canvas; this task .* on a 8\^3"):
@@ -196,14 +196,15 @@ def test_removal_alone_is_checked_against_the_checkpoint(tmp_path):
 
 
 def test_removal_alone_names_the_checkpoints_own_task():
-    from orchestration.cli.common import expected_task
-    from rllock.files.checkpoint import check_same_task, open_checkpoint
+    from rllock.core.identity import check_same_task
+    from rllock.files.checkpoint import open_checkpoint
+    from rllock.search.serving import Named
 
     meta = open_checkpoint("cube4-k7").metadata
-    named = argparse.Namespace(shape=None, pieces=None, removal="straight", resolution=None)
-    check_same_task(meta.task, expected_task(named, meta), SHIPPED)  # its own mode: accepted
-    assert expected_task(argparse.Namespace(shape=None, pieces=None, removal=None), meta) is None
-    assert expected_task(argparse.Namespace(**{**vars(named), "removal": "path"}), meta)["removal"] == "path"
+    named = Named(removal="straight")
+    check_same_task(meta.task, named.identity(meta), SHIPPED)  # its own mode: accepted
+    assert Named().identity(meta) is None
+    assert Named(removal="path").identity(meta)["removal"] == "path"
 
 
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf", "0", "-3"])

@@ -13,9 +13,11 @@ from rllock.config import TrainConfig
 from rllock.core.env import make_task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
+from rllock.files import orbax_io
 from rllock.search.inference import load_policy
 from rllock.search.mcts import ChunkStore, MCTSConfig, Searcher
 from rllock.search.network import NetConfig, PolicyValueNet
+from rllock.search.workload import SingleTask
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
@@ -25,7 +27,7 @@ MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8
 def task_and_episodes():
     task = make_task("box:4x4x2", 4)
     searcher = Searcher(PolicyValueNet(NET), MCTS, ChunkStore, task, batch=8)
-    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(0))
+    learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(0))
     return task, searcher.play(learner.params, task, jax.random.PRNGKey(2), seed=1)
 
 
@@ -51,7 +53,10 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
     batch = buf.sample(32, seed=0)
     # Without symmetries, so that every update sees exactly this batch.
     learner = Learner(
-        task, NET, LearnerConfig(learning_rate=3e-3, batch_size=32, symmetries=False), jax.random.PRNGKey(0)
+        SingleTask.of(task, 4),
+        NET,
+        LearnerConfig(learning_rate=3e-3, batch_size=32, symmetries=False),
+        jax.random.PRNGKey(0),
     )
     first = learner.update(batch)
     for _ in range(60):
@@ -64,15 +69,15 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
 
 def _save(tmp_path, task, learner):
     config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
-    mngr = ckpt.manager(tmp_path / "run" / "best", keep=1)
-    ckpt.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step))
+    mngr = orbax_io.manager(tmp_path / "run" / "best", keep=1)
+    orbax_io.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step))
     mngr.close()
     return tmp_path / "run"
 
 
 def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episodes):
     task, eps = task_and_episodes
-    learner = Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5))
+    learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5))
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
     buf.add_many(eps)
     learner.update(buf.sample(16, seed=1))
@@ -86,10 +91,10 @@ def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episo
 
 def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and_episodes):
     task, _ = task_and_episodes
-    run = _save(tmp_path, task, Learner(task, NET, LearnerConfig(), jax.random.PRNGKey(5)))
-    other = ckpt.task_identity(make_task("box:4x4x2", 3), 4)
+    run = _save(tmp_path, task, Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5)))
+    other = make_task("box:4x4x2", 3)
     with pytest.raises(RLLockError, match=r"another task: box:4x4x2 \(4x4x2\) K=4, .*; this task is .*K=3"):
-        load_policy(run, expect=other)
+        load_policy(run, other)
     step_dir = ckpt.find_step_dir(run)
     broken = tmp_path / "broken"
     shutil.copytree(step_dir, broken)

@@ -89,7 +89,7 @@ def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
     assert total < 40 * 2**20  # the package stays small
     for name in names:
         if ckpt.read_metadata(ckpt.SHIPPED / name).multitask:  # `general`: any task on its canvas
-            policy = load_policy(name, task=make_task("cube4", 8))
+            policy = load_policy(name, make_task("cube4", 8))
             assert policy.net.task_planes and policy.task.pieces == 8, name
         else:
             shape, k = re.fullmatch(r"([a-z0-9]+)-k([0-9]+)", name).groups()

@@ -37,10 +37,15 @@ def _steps(logdir: Path) -> list[int]:
     return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
 
 
-def _wait_for(predicate, timeout: float) -> None:
+def _wait_for(
+    predicate, timeout: float, proc: subprocess.Popen | None = None, lines: list | None = None
+) -> None:
+    """Wait for `predicate`; fail at once, with the run's output, if the run `proc` ended first."""
     end = time.monotonic() + timeout
     while not predicate():
-        assert time.monotonic() < end, "timed out"
+        output = "".join(lines or [])
+        assert proc is None or proc.poll() is None, f"the run ended (exit {proc.returncode}):\n{output}"
+        assert time.monotonic() < end, f"timed out:\n{output}"
         time.sleep(1)
 
 
@@ -80,7 +85,10 @@ RESTARTED = re.compile(r"self-play actor \d+ restarted \(pid \d+ -> \d+\)")
 def test_a_killed_actor_is_restarted_and_ctrl_c_then_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     logdir = tmp_path / "run"
     started = time.time()
-    proc = _train(*TINY, "--minutes", "5", "--logdir", str(logdir))
+    # Ctrl-C ends the run, not its budget: with 5 minutes, a loaded machine (a fresh clone compiles every
+    # numba and XLA program cold, beside the other test worker) could spend the budget on the two waits
+    # below, and the run ended before the restarted actor's first batch came back.
+    proc = _train(*TINY, "--minutes", "30", "--logdir", str(logdir))
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
     reader.start()
@@ -94,10 +102,10 @@ def test_a_killed_actor_is_restarted_and_ctrl_c_then_saves_a_checkpoint_and_says
         return found
 
     try:
-        _wait_for(lambda: actor_processes() and _steps(logdir), timeout=240)
+        _wait_for(lambda: actor_processes() and _steps(logdir), timeout=240, proc=proc, lines=lines)
         actor_processes()[0].kill()
         # The pool notices the new process when it returns its first batch; then Ctrl-C stops the run.
-        _wait_for(lambda: any(RESTARTED.search(line) for line in lines), timeout=240)
+        _wait_for(lambda: any(RESTARTED.search(line) for line in lines), timeout=240, proc=proc, lines=lines)
         before = _steps(logdir)[-1]
         os.kill(proc.pid, signal.SIGINT)  # the driver only, as a terminal's Ctrl-C reaches it
         proc.wait(timeout=120)

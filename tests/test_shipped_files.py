@@ -11,6 +11,7 @@ from pathlib import Path
 from helpers import save_run
 
 from rllock.files import checkpoint as ckpt
+from rllock.files.provenance import portable
 from rllock.search import pretrained
 from rllock.search.inference import load_policy
 from rllock.search.mcts import MCTSConfig
@@ -104,10 +105,10 @@ def test_ship_writes_no_absolute_path(tmp_path, monkeypatch):
 
 
 def test_portable_paths():
-    assert ckpt.portable("runs/cube4-k8/best/3901") == "runs/cube4-k8/best/3901"
-    assert ckpt.portable(Path.cwd() / "runs" / "x" / "best" / "5") == "runs/x/best/5"
-    assert ckpt.portable("/nowhere/runs/cube4-k9/best/5703") == "cube4-k9/best/5703"
-    assert ckpt.portable("/nowhere/runs/cube4-k9/checkpoints/5703") == "cube4-k9/checkpoints/5703"
-    assert ckpt.portable("/nowhere/cube6-k22") == "cube6-k22"
-    assert ckpt.portable("/nowhere/x/general/state", 2) == "general/state"
-    assert ckpt.portable(ckpt.SHIPPED / "general") == "rllock/checkpoints/general"
+    assert portable("runs/cube4-k8/best/3901") == "runs/cube4-k8/best/3901"
+    assert portable(Path.cwd() / "runs" / "x" / "best" / "5") == "runs/x/best/5"
+    assert portable("/nowhere/runs/cube4-k9/best/5703") == "cube4-k9/best/5703"
+    assert portable("/nowhere/runs/cube4-k9/checkpoints/5703") == "cube4-k9/checkpoints/5703"
+    assert portable("/nowhere/cube6-k22") == "cube6-k22"
+    assert portable("/nowhere/x/general/state", 2) == "general/state"
+    assert portable(ckpt.SHIPPED / "general") == "rllock/checkpoints/general"

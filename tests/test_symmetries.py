@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from helpers import random_valid_states, raw_chunks
 
-from learner.learner import augment
 from learner.replay import ReplayBuffer
 from rllock.core import compiled_checkers as checkers
 from rllock.core.env import State, make_task
 from rllock.core.topology import build_topology, symmetries
 from rllock.search.base import Episode
+from rllock.search.workload import augment
 
 
 def _brute_force_count(grid: np.ndarray) -> int:
@@ -120,7 +120,7 @@ def test_success_fraction_mixes_successful_transitions(tmp_path):
     uniform = buf.sample(64, seed=0, success_fraction=0.5)  # no success yet: plain uniform replay
     assert uniform["labels"].shape == (64, 8) and not uniform["labels"].any()
     buf.add(_episode(True, 3))
-    assert buf.stats()["successes"] == 3
+    assert buf.counts().successes == 3
     mixed = buf.sample(64, seed=0, success_fraction=0.5)
     wins = mixed["labels"][:, 0] == 1
     assert wins[:32].all() and wins.sum() < 40  # the 32 drawn from wins, the rest mostly from the 50 others
@@ -129,5 +129,5 @@ def test_success_fraction_mixes_successful_transitions(tmp_path):
     buf.snapshot(str(tmp_path / "replay.npz"))
     again = ReplayBuffer(100, 8, 2, 2)
     again.restore(str(tmp_path / "replay.npz"))
-    assert again.stats()["successes"] == 3
+    assert again.counts().successes == 3
     np.testing.assert_array_equal(again.sample(64, seed=0, success_fraction=0.5)["labels"], mixed["labels"])

@@ -31,9 +31,10 @@ from orchestration.bench.transfer import (
     ratio,
     trained_on,
 )
+from orchestration.builder import workload_of
 from orchestration.cli.main import main
 from orchestration.recorder import Counters, Recorder
-from orchestration.train import _Run, _setup
+from orchestration.validation import Plan, Validator
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
 from rllock.core.env import State, make_task
 from rllock.core.shapes import crop, is_connected
@@ -54,6 +55,7 @@ from rllock.search.network import (
     init_params,
     to_canvas,
 )
+from rllock.search.workload import ManyTasks, SingleTask
 
 SPEC = "cube4:6-9,box:6x5x4:8-12,random:60-200:6-20"
 
@@ -229,7 +231,7 @@ def test_multitask_selfplay_fills_a_canvas_buffer_the_learner_trains_on():
     tasks = parse_tasks("box:4x3x2:3-4,cube3:3", canvas=4)
     net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
     mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
-    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=4), seed=0)
+    worker = SelfPlayWorker(PlaySpec(ManyTasks(tasks), net, mcts, "rl-lock", episodes=4), seed=0)
     worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
     buffer = ReplayBuffer(100, 64, 4, tasks.max_piece_size())
     groups = set()
@@ -239,7 +241,7 @@ def test_multitask_selfplay_fills_a_canvas_buffer_the_learner_trains_on():
         assert all(e.labels.shape[1] == 64 for e in episodes)
         buffer.add_many(episodes, stats.pieces)
     assert groups == {0, 1} and len(worker.compiled) >= 2  # n = 6, 8 (box) and 9 (cube3)
-    learner = Learner(None, net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
+    learner = Learner(ManyTasks(tasks), net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
     sample = buffer.sample(8, seed=0)
     planes, chunks, valid, _, _ = learner.prepare(sample)
     for row in range(8):
@@ -269,7 +271,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
     assert [g.canvas for g in tasks.groups] == [4, 8] and tasks.store_canvas == 8
     net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
     mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
-    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=4), seed=0)
+    worker = SelfPlayWorker(PlaySpec(ManyTasks(tasks), net, mcts, "rl-lock", episodes=4), seed=0)
     worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
     buffer = ReplayBuffer(400, 512, 4, tasks.max_piece_size(), store_canvas=8)
     played = set()
@@ -279,7 +281,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
         assert all(e.labels.shape[1] == 512 for e in episodes)
         buffer.add_many(episodes, stats.pieces, stats.canvas)
     assert played == {4, 8} and {c for _, c in worker.compiled} == {4, 8}
-    learner = Learner(None, net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
+    learner = Learner(ManyTasks(tasks), net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
     seen = set()
     for seed in range(8):
         sample = buffer.sample(8, seed=seed, success_fraction=0.5)
@@ -331,7 +333,7 @@ def test_canvas_episode_pads_chunks_and_marks_the_shape():
     tasks = parse_tasks("box:4x3x2:4", canvas=4)
     net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
     mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
-    worker = SelfPlayWorker(PlaySpec(tasks, net, mcts, "rl-lock", episodes=2), seed=1)
+    worker = SelfPlayWorker(PlaySpec(ManyTasks(tasks), net, mcts, "rl-lock", episodes=2), seed=1)
     task = tasks.validation_tasks(0)[0]
     episode = worker.searchers(task, 4)[0].play(
         init_params(net, jax.random.PRNGKey(0)), task, jax.random.PRNGKey(0), seed=0
@@ -370,13 +372,13 @@ def test_a_multitask_checkpoint_generates_verified_assemblies_for_a_task_it_neve
     run = ["generate", "--checkpoint", str(tmp_path / "run"), "--shape", "cube3", "--pieces", "3"]
     assert main([*run, "--simulations", "0", "--out", str(tmp_path / "o3")]) == 2
     assert capsys.readouterr().err.strip() == "rllock: error: --simulations must be at least 1, got 0"
-    policy = load_policy(tmp_path / "run", task=make_task("cube3", 3))
+    policy = load_policy(tmp_path / "run", make_task("cube3", 3))
     with pytest.raises(RLLockError, match="runs no search"):
         with_simulations(dataclasses.replace(policy, method="ppo"), 8)
     # beyond its 4^3 canvas it plays on the smallest that fits, up to MAX_CANVAS
-    assert load_policy(tmp_path / "run", task=make_task("box:5x3x2", 3)).net.canvas == 6  # step 2
+    assert load_policy(tmp_path / "run", make_task("box:5x3x2", 3)).net.canvas == 6  # step 2
     with pytest.raises(RLLockError, match="does not fit the largest canvas"):
-        load_policy(tmp_path / "run", task=make_task("box:17x3x2", 3))
+        load_policy(tmp_path / "run", make_task("box:17x3x2", 3))
 
 
 def test_a_multitask_checkpoint_ships_and_lists_its_task_groups(tmp_path):
@@ -389,11 +391,11 @@ def test_a_multitask_checkpoint_ships_and_lists_its_task_groups(tmp_path):
 def test_init_starts_a_run_from_another_checkpoints_network(tmp_path):
     saved = save_multitask_run(tmp_path / "run", "cube3:3-4", net=MULTI_NET, mcts=MULTI_MCTS)
     config = TrainConfig(shape="box:4x3x2", pieces=4, init=str(tmp_path / "run"))
-    config, task, tasks, identity, init = _setup(config)
-    assert task is not None and tasks is None and identity["pieces"] == 4
+    config, workload, init = workload_of(config)
+    assert isinstance(workload, SingleTask) and workload.identity()["pieces"] == 4
     assert config.net.task_planes and config.net.canvas == 4 and config.net.features == (4, 8)
-    learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
-    learner.start_from(load_network(init)[2])  # _setup opens the checkpoint; its weights load later
+    learner = Learner(workload, config.net, LearnerConfig(), jax.random.PRNGKey(9))
+    learner.start_from(load_network(init)[2])  # workload_of opens the checkpoint; its weights load later
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
     assert learner.step == 0
@@ -405,16 +407,16 @@ def test_init_fine_tunes_a_generalist_on_a_smaller_canvas(tmp_path):
         tmp_path / "run", "cube3:3-4", net=dataclasses.replace(MULTI_NET, canvas=6), mcts=MULTI_MCTS
     )
     small = TrainConfig(shape="box:4x3x2", pieces=4, init=str(tmp_path / "run"), net=NetConfig(canvas=4))
-    config, task, _, identity, init = _setup(small)
-    assert task is not None and config.net.canvas == identity["canvas"] == 4
+    config, workload, init = workload_of(small)
+    assert config.net.canvas == workload.identity()["canvas"] == 4
     assert config.net.features == (4, 8) and config.net.task_planes
-    learner = Learner(task, config.net, LearnerConfig(), jax.random.PRNGKey(9))
-    learner.start_from(load_network(init)[2])  # _setup opens the checkpoint; its weights load later
+    learner = Learner(workload, config.net, LearnerConfig(), jax.random.PRNGKey(9))
+    learner.start_from(load_network(init)[2])  # workload_of opens the checkpoint; its weights load later
     for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(a, b)
-    assert _setup(dataclasses.replace(small, net=NetConfig()))[0].net.canvas == 6
+    assert workload_of(dataclasses.replace(small, net=NetConfig()))[0].net.canvas == 6
     with pytest.raises(RLLockError, match="does not fit"):
-        _setup(dataclasses.replace(small, net=NetConfig(canvas=2)))
+        workload_of(dataclasses.replace(small, net=NetConfig(canvas=2)))
 
 
 def test_transfer_tasks_and_ratios():
@@ -459,17 +461,16 @@ def test_multitask_validation_scores_each_group_in_tensorboard_and_keeps_the_bes
         validation_episodes=4,
         logdir=str(tmp_path),
     )
-    config, task, tasks, identity, _ = _setup(config)
-    learner = Learner(None, config.net, config.learner, jax.random.PRNGKey(0))
-    recorder = Recorder(tmp_path, config, identity, 0, False, [])
-    run = _Run(config, task, tasks, learner, recorder, Counters(), None, 0.0)
-    run._validate()
+    config, workload, _ = workload_of(config)
+    learner = Learner(workload, config.net, config.learner, jax.random.PRNGKey(0))
+    recorder = Recorder(tmp_path, config, workload.identity(), 0, False, [])
+    score = Validator(Plan.of(config, workload), None).run(learner, recorder, Counters())
     recorder.close()
-    score = run.last_score
-    assert list(score["groups"]) == ["box:4x3x2:3", "cube3:3"] and score["episodes"] == 8
-    rates = [g["success_rate"] for g in score["groups"].values()]
-    assert score["success_rate"] == pytest.approx(np.mean(rates))
-    assert [g["task"] for g in score["groups"].values()] == ["box:4x3x2 K=3", "cube3 K=3"]
+    assert score.groups is not None
+    assert list(score.groups) == ["box:4x3x2:3", "cube3:3"] and score.episodes == 8
+    rates = [g["success_rate"] for g in score.groups.values()]
+    assert score.success_rate == pytest.approx(np.mean(rates))
+    assert [g["task"] for g in score.groups.values()] == ["box:4x3x2 K=3", "cube3 K=3"]
     events = EventAccumulator(str(tmp_path))
     events.Reload()
     tags = set(events.Tags()["scalars"])

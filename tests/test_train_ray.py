@@ -39,12 +39,12 @@ def run(tmp_path_factory):
 
 def test_training_writes_checkpoints_and_event_files(run):
     logdir, result = run
-    assert result["steps"] == STEPS and result["episodes"] > 0
+    assert result.steps == STEPS and result.episodes > 0
     latest = sorted(int(p.name) for p in (logdir / "checkpoints").iterdir() if p.name.isdigit())
     best = [p for p in (logdir / "best").iterdir() if p.name.isdigit()]
-    assert latest and latest[-1] == result["steps"] and len(best) == 1
+    assert latest and latest[-1] == result.steps and len(best) == 1
     meta = json.loads((logdir / "checkpoints" / str(latest[-1]) / "meta" / "metadata").read_text())
-    assert meta["task"]["pieces"] == 3 and meta["step"] == result["steps"]
+    assert meta["task"]["pieces"] == 3 and meta["step"] == result.steps
     events = EventAccumulator(str(logdir))
     events.Reload()
     tags = set(events.Tags()["scalars"])
@@ -63,7 +63,7 @@ def test_training_writes_checkpoints_and_event_files(run):
     assert "best/assembly" in events.Tags()["images"] and events.Tags()["tensors"]  # picture; config text
     for tag in ("charts/episodes_per_sec", "validation/success_rate"):
         steps = [e.step for e in events.Scalars(tag)]
-        assert steps == sorted(steps) and steps[-1] == result["steps"]
+        assert steps == sorted(steps) and steps[-1] == result.steps
     assert max(e.value for e in events.Scalars("charts/policy_lag")) <= TINY.max_policy_lag
     for kind in ("driver", "buffer", "actor"):
         assert events.Scalars(f"memory/{kind}_peak_mb")[-1].value > 50  # real processes, real megabytes

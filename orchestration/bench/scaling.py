@@ -26,14 +26,15 @@ from dataclasses import asdict, dataclass, replace
 import jax
 import numpy as np
 import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from actors.selfplay import TaskSpec
 from learner.learner import Learner
 from orchestration.bench.selfplay import drain, start_buffer, timed_window
 from orchestration.pool import ActorPool, largest_node_cpus, plan_layout
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig
-from rllock.core.env import Task, make_task
+from rllock.core.env import make_task
 from rllock.search.network import fit_canvas
+from rllock.search.workload import SingleTask
 
 log = logging.getLogger(__name__)
 
@@ -107,22 +108,42 @@ def local_cluster(nodes: int, cores: int) -> Iterator[None]:
             shutil.rmtree(folder, ignore_errors=True)
 
 
+@ray.remote(num_cpus=0)
+class _Probe:
+    """Stands beside a self-play actor on its node, to time what reaches that node (`_broadcast_ms`)."""
+
+    def where(self) -> int:
+        return os.getpid()
+
+    def fetch(self, weights: list) -> int:
+        """Fetch a weights version and nothing else; returns the parameters' bytes."""
+        return sum(leaf.nbytes for leaf in jax.tree_util.tree_leaves(ray.get(weights[0])))
+
+
 def _broadcast_ms(pool: ActorPool, params: dict, repeats: int) -> tuple[float, float]:
-    """(median ms for every idle actor to fetch a new weights version, median ms of an empty call)."""
+    """(median ms for a process on every actor's node to fetch a new weights version, median ms of an empty
+    call), with the actors idle."""
+    probes = [
+        _Probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(node, soft=False)).remote()  # type: ignore[attr-defined]
+        for _, node in pool.places.values()
+    ]
+    ray.get([p.where.remote() for p in probes])  # started before the clock does
     fetch, call = [], []
     for _ in range(repeats):
         start = time.perf_counter()
-        ray.get([a.where.remote() for a in pool.actors])
+        ray.get([p.where.remote() for p in probes])
         call.append(time.perf_counter() - start)
         ref = ray.put(params)  # a new object each time: no node holds it yet
         start = time.perf_counter()
-        ray.get([a.fetch.remote([ref]) for a in pool.actors])
+        ray.get([p.fetch.remote([ref]) for p in probes])
         fetch.append(time.perf_counter() - start)
+    for probe in probes:
+        ray.kill(probe)
     return 1000 * statistics.median(fetch), 1000 * statistics.median(call)
 
 
 def _measure(
-    task: Task, net: NetConfig, mcts: MCTSConfig, plan: ScalingPlan, actors: int, learner: Learner
+    workload: SingleTask, net: NetConfig, mcts: MCTSConfig, plan: ScalingPlan, actors: int, learner: Learner
 ) -> tuple[dict, dict]:
     """One row: `actors` actors on the cluster Ray is connected to, the learner stepping beside them.
     Returns (the row, a replay sample for the learner-alone timing)."""
@@ -134,8 +155,8 @@ def _measure(
         reserved_cpus=0,
         node_cpus=largest_node_cpus(),
     )
-    buffer = start_buffer(task, mcts)
-    pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)
+    buffer = start_buffer(workload, mcts)
+    pool = ActorPool(workload, net, mcts, "rl-lock", layout, 100, buffer)
     try:
         params = jax.device_get(learner.params)
         weights = [ray.put(params)]
@@ -147,7 +168,7 @@ def _measure(
         def learn() -> None:
             learner.update(sample)
 
-        row = timed_window(pool, weights, plan.seconds, learn)
+        row = timed_window(pool, buffer, weights, plan.seconds, learn)
         broadcast, call = _broadcast_ms(pool, params, plan.broadcasts)
         nodes = len(pool.nodes_in_use())
     finally:
@@ -165,13 +186,13 @@ def _measure(
     }, sample
 
 
-def learner_alone(task: Task, net: NetConfig, plan: ScalingPlan, sample: dict) -> dict[str, float]:
+def learner_alone(workload: SingleTask, net: NetConfig, plan: ScalingPlan, sample: dict) -> dict[str, float]:
     """Learner steps per second on each JAX platform present, the machine otherwise idle."""
     rates = {}
     platforms = ["cpu"] + [p for p in ("gpu", "tpu") if _has(p)]
     for platform in platforms:
         with jax.default_device(jax.devices(platform)[0]):
-            learner = Learner(task, net, LearnerConfig(batch_size=plan.batch_size), jax.random.PRNGKey(0))
+            learner = Learner(workload, net, LearnerConfig(batch_size=plan.batch_size), jax.random.PRNGKey(0))
             learner.update(sample)  # compile
             start = time.perf_counter()
             for _ in range(plan.learner_steps):
@@ -195,13 +216,16 @@ def bench_scaling(plan: ScalingPlan, cores: int | None = None) -> dict:
     task = make_task(plan.shape, plan.pieces)
     net = fit_canvas(task, NetConfig())
     mcts = MCTSConfig(simulations=plan.simulations)
+    workload = SingleTask.of(task, net.canvas_side())
     rows = []
     sample: dict = {}
     for nodes in plan.nodes:
         with local_cluster(nodes, cores):
             for actors in plan.actors:
-                learner = Learner(task, net, LearnerConfig(batch_size=plan.batch_size), jax.random.PRNGKey(0))
-                row, sample = _measure(task, net, mcts, plan, actors, learner)
+                learner = Learner(
+                    workload, net, LearnerConfig(batch_size=plan.batch_size), jax.random.PRNGKey(0)
+                )
+                row, sample = _measure(workload, net, mcts, plan, actors, learner)
                 rows.append({"nodes": nodes, **row})
                 log.info(
                     "%d node(s), %d actor(s): %.3f episodes/s, %.1f learner steps/s",
@@ -215,7 +239,7 @@ def bench_scaling(plan: ScalingPlan, cores: int | None = None) -> dict:
         "cores": cores,
         "canvas": net.canvas,
         "rows": rows,
-        "learner_alone_steps_per_sec": learner_alone(task, net, plan, sample),
+        "learner_alone_steps_per_sec": learner_alone(workload, net, plan, sample),
     }
 
 

@@ -12,24 +12,25 @@ from typing import Any
 import jax
 import ray
 
-from actors.selfplay import TaskSpec
 from learner.replay import ReplayBuffer
 from orchestration.pool import ActorPool, Layout, on_driver_node, plan_layout, start_ray
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
-from rllock.core.env import Task, compact_dtypes
+from rllock.core.env import Task
 from rllock.search.base import TimeSplit
 from rllock.search.network import init_params
+from rllock.search.workload import SingleTask
 
 log = logging.getLogger(__name__)
 
 
-def start_buffer(task: Task, mcts: MCTSConfig, capacity: int = 10_000) -> Any:
-    """A replay buffer actor for `task`, on this process's node, as training places it. Its handle is Any:
-    Ray types an ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
+def start_buffer(workload: SingleTask, mcts: MCTSConfig, capacity: int = 10_000) -> Any:
+    """A replay buffer actor for `workload`, on this process's node, as training places it. Its handle is
+    Any: Ray types an ActorHandle's methods as Never, and mypy checks nothing after a call of one."""
+    layout = workload.buffer_layout("rl-lock", mcts)
     buffer: Any = (
         ray.remote(num_cpus=0)(ReplayBuffer)
         .options(scheduling_strategy=on_driver_node())
-        .remote(capacity, task.size, mcts.candidates, task.piece_size, *compact_dtypes(task))
+        .remote(capacity, *layout.shape, *layout.dtypes)
     )
     return buffer
 
@@ -40,12 +41,14 @@ def drain(pool: ActorPool) -> None:
 
 
 def timed_window(
-    pool: ActorPool, weights: list, seconds: float, learn: Callable[[], None] | None = None
+    pool: ActorPool, buffer: Any, weights: list, seconds: float, learn: Callable[[], None] | None = None
 ) -> dict:
     """Self-play throughput over a window of `seconds`: batches are handed out until it ends, and those
     under way then count (the window ends with them). `learn`, when given, runs between collections, as
-    the learner does in training; its calls are counted."""
-    episodes = simulations = decisions = sent = steps = 0
+    the learner does in training; its calls are counted. The bytes per episode are the episodes' arrays
+    as `buffer` received them."""
+    episodes = simulations = decisions = steps = 0
+    received_before = ray.get(buffer.counts.remote()).received_bytes
     times = TimeSplit()
     busy = 0.0
     start = time.perf_counter()
@@ -56,7 +59,6 @@ def timed_window(
             episodes += stats.episodes
             simulations += stats.simulations
             decisions += stats.decisions
-            sent += stats.sent_bytes
             busy += stats.seconds
             times.add(stats.times)
             if time.perf_counter() - start < seconds:
@@ -65,6 +67,7 @@ def timed_window(
             learn()
             steps += 1
     elapsed = time.perf_counter() - start
+    sent = ray.get(buffer.counts.remote()).received_bytes - received_before
     sims = max(simulations, 1)
     return {
         "episodes": episodes,
@@ -87,12 +90,13 @@ def timed_window(
 def _measure(
     task: Task, net: NetConfig, mcts: MCTSConfig, layout: Layout, params_ref, seconds: float
 ) -> dict:
-    buffer = start_buffer(task, mcts)
-    pool = ActorPool(TaskSpec.of(task), net, mcts, "rl-lock", layout, 100, buffer)
+    workload = SingleTask.of(task, net.canvas_side())
+    buffer = start_buffer(workload, mcts)
+    pool = ActorPool(workload, net, mcts, "rl-lock", layout, 100, buffer)
     weights = [params_ref]
     pool.submit_all(weights, 0)  # compile and warm up outside the timed window
     drain(pool)
-    row = timed_window(pool, weights, seconds)
+    row = timed_window(pool, buffer, weights, seconds)
     pool.shutdown()
     ray.kill(buffer)
     del row["learner_steps_per_sec"]

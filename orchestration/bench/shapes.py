@@ -3,7 +3,7 @@
 For each shape (DESIA's bunny and dog, the high-level mario, bunny and spider, and a mesh at the
 resolutions asked for) and each K of the sweep that the shape allows, each arm runs until its first
 valid assembly or the time limit: the search solver, and `general` zero-shot (on a canvas larger than
-its own where the shape needs one: `rllock.search.inference.check_fits`). A task with a proof that it
+its own where the shape needs one: `rllock.search.serving.canvas_for`). A task with a proof that it
 has no assembly (`rllock.core.feasibility`) is marked so without searching. Times are wall clock from
 the start of the arm, `general`'s loading and compiling included.
 """
@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from orchestration.bench.paper import policy_arm, warm_process
+from orchestration.bench.arms import policy_arm, warm_process
 from rllock.core.env import Task, make_task
 from rllock.core.feasibility import impossibility
 from rllock.core.shapes import load_shape
@@ -82,7 +82,7 @@ def solver_cell(task: Task, time_limit: float, seed: int) -> Cell:
 
 def general_cell(task: Task, time_limit: float, seed: int, batch: int, simulations: int | None) -> Cell:
     def load():
-        return with_simulations(load_policy("general", task=task), simulations)
+        return with_simulations(load_policy("general", task), simulations)
 
     try:
         arm, _ = policy_arm(load, count=1, batch=batch, time_limit=time_limit, seed=seed)

@@ -7,6 +7,7 @@ import statistics
 import time
 from dataclasses import dataclass
 
+from orchestration.bench.specs import parse_list
 from rllock.core.env import State, Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
 from rllock.search.solver import SearchConfig, reach_depth, search
@@ -83,21 +84,19 @@ def bench_checkers(
 
 def parse_tasks(spec: str | None) -> list[tuple[int, int]]:
     """'5^3:13,6^3:20' -> [(5, 13), (6, 20)]; None -> the nine paper tasks."""
-    if spec is None:
-        return list(PAPER_MINUTES)
-    tasks = []
-    for item in spec.split(","):
-        try:
-            cube_part, k_part = item.strip().split(":")
-            size = int(cube_part.removesuffix("^3"))
-            task = (size, int(k_part))
-        except ValueError:
-            raise RLLockError(f"bad task {item!r}: write tasks like 5^3:13,6^3:20") from None
-        if task not in PAPER_MINUTES:
-            known = ", ".join(f"{s}^3:{k}" for s, k in PAPER_MINUTES)
-            raise RLLockError(f"unknown task {item!r}: the paper's tasks are {known}")
-        tasks.append(task)
-    return tasks
+    return parse_list(spec, list(PAPER_MINUTES), _paper_cube, "--tasks")
+
+
+def _paper_cube(item: str) -> tuple[int, int]:
+    try:
+        cube_part, k_part = item.split(":")
+        task = (int(cube_part.removesuffix("^3")), int(k_part))
+    except ValueError:
+        raise RLLockError(f"bad task {item!r}: write tasks like 5^3:13,6^3:20") from None
+    if task not in PAPER_MINUTES:
+        known = ", ".join(f"{s}^3:{k}" for s, k in PAPER_MINUTES)
+        raise RLLockError(f"unknown task {item!r}: the paper's tasks are {known}")
+    return task
 
 
 @dataclass(frozen=True)

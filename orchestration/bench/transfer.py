@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from orchestration.bench.paper import (
+from orchestration.bench.arms import (
     Arm,
     ArmProtocol,
     arm_cell,
@@ -24,10 +24,11 @@ from orchestration.bench.paper import (
     solver_arm,
     warm_process,
 )
+from orchestration.bench.specs import parse_list
 from rllock.core.env import Task, make_task
 from rllock.core.shapes import grid_sha256
 from rllock.errors import RLLockError
-from rllock.files.checkpoint import Checkpoint, Metadata, open_checkpoint, shipped_names, task_identity
+from rllock.files.checkpoint import Checkpoint, Metadata, open_checkpoint, shipped_names
 from rllock.search.inference import load_policy, untrained_like, with_simulations
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,
@@ -48,17 +49,17 @@ class TransferTask:
 
 def parse_transfer_tasks(spec: str | None) -> list[TransferTask]:
     """'sofa:12,cube4:9' or the paper's names ('cube4-k9'); None: the held-out set (`HELD_OUT`)."""
-    out = []
-    for item in (spec or HELD_OUT).split(","):
-        item = item.strip()
-        if "-k" in item and ":" not in item:
-            shape, _, k = item.rpartition("-k")
-        else:
-            shape, _, k = item.rpartition(":")
-        if not shape or not k.isdigit():
-            raise RLLockError(f"bad task {item!r}: use SHAPE:K (e.g. sofa:12) or a name like cube4-k9")
-        out.append(TransferTask(shape, int(k)))
-    return out
+    return parse_list(spec or HELD_OUT, [], _transfer_task, "--tasks")
+
+
+def _transfer_task(item: str) -> TransferTask:
+    if "-k" in item and ":" not in item:
+        shape, _, k = item.rpartition("-k")
+    else:
+        shape, _, k = item.rpartition(":")
+    if not shape or not k.isdigit():
+        raise RLLockError(f"bad task {item!r}: use SHAPE:K (e.g. sofa:12) or a name like cube4-k9")
+    return TransferTask(shape, int(k))
 
 
 @dataclass(frozen=True)
@@ -100,13 +101,12 @@ def bench_transfer_task(
     t = make_task(task.shape, task.pieces, opened.metadata.removal)
     seen = trained_on(opened.metadata, t)
     protocol = ArmProtocol(count=count, batch=batch, time_limit=time_limit, seed=seed)
-    zero, policy = policy_arm(lambda: with_simulations(load_policy(opened, task=t), simulations), **protocol)
+    zero, policy = policy_arm(lambda: with_simulations(load_policy(opened, t), simulations), **protocol)
     untrained, _ = policy_arm(lambda: untrained_like(policy, seed), **protocol)
     per_task, own = None, None
     if task.name in shipped_names():
         shipped = open_checkpoint(task.name)
-        expect = task_identity(t, shipped.metadata.canvas)
-        per_task, own = policy_arm(lambda: load_policy(shipped, expect), **protocol)
+        per_task, own = policy_arm(lambda: load_policy(shipped, t), **protocol)
     solver = solver_arm(t, count=count, time_limit=time_limit, seed=seed)
     own_simulations = None if own is None else own.mcts.simulations
     return TransferRow(

@@ -9,13 +9,9 @@ import argparse
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
-
-if TYPE_CHECKING:
-    from rllock.files.checkpoint import Metadata
 
 
 def positive_float(text: str) -> float:
@@ -162,42 +158,19 @@ def add_checkpoint_task_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, default=None, help="for a mesh --shape: as given to train")
 
 
-def expected_task(args: argparse.Namespace, saved: Metadata) -> dict | None:
-    """The identity of the task named on the command line (if one was named), to compare with the
-    checkpoint's task `saved`; an unnamed removal mode is the checkpoint's own. --removal alone names the
-    checkpoint's own shape and K with that removal mode."""
-    if args.shape is None and args.pieces is None:
-        if args.removal is None:
-            return None
-        return {**saved.task, "removal": args.removal}
-    if args.shape is None or args.pieces is None:
-        raise RLLockError("give both --shape and --pieces to check the checkpoint's task, or neither")
-    from rllock.core.env import make_task
-    from rllock.files.checkpoint import task_identity
+def named_task(args: argparse.Namespace):
+    """The task named by --shape, --pieces, --removal and --resolution (`rllock.search.serving.Named`)."""
+    from rllock.search.serving import Named
 
-    task = make_task(args.shape, args.pieces, args.removal or saved.removal, resolution=args.resolution)
-    return task_identity(task, saved.canvas)
+    return Named(args.shape, args.pieces, args.removal, args.resolution)
 
 
 def load_for(args: argparse.Namespace):
-    """The policy for `generate`, `bench learning` and `bench success`: a single-task checkpoint's own
-    task (checked against --shape and --pieces when named), or the named task for a multi-task
-    checkpoint; searching with --simulations when given."""
-    from rllock.core.env import make_task
-    from rllock.files.checkpoint import open_checkpoint
+    """The policy for `generate`, `bench learning` and `bench success`: the checkpoint's task for the one
+    named on the command line (`rllock.search.serving.served`), searching with --simulations when
+    given."""
     from rllock.search.inference import load_policy, with_simulations
 
     if args.batch < 1:
         raise RLLockError(f"--batch must be at least 1, got {args.batch}")
-    checkpoint = open_checkpoint(args.checkpoint)
-    meta = checkpoint.metadata
-    task, expect = None, None
-    if meta.multitask:
-        if args.shape is None or args.pieces is None:
-            raise RLLockError(
-                f"checkpoint {args.checkpoint} serves many tasks: name one with --shape and --pieces"
-            )
-        task = make_task(args.shape, args.pieces, args.removal or meta.removal, resolution=args.resolution)
-    else:
-        expect = expected_task(args, meta)
-    return with_simulations(load_policy(checkpoint, expect, task=task), args.simulations)
+    return with_simulations(load_policy(args.checkpoint, named_task(args)), args.simulations)

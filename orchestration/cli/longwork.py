@@ -53,17 +53,12 @@ def kept(command: str, count: int, where: object) -> str:
 def general_serves(task: Task) -> bool:
     """Whether the shipped multi-task checkpoint `general` can generate for `task` (the check
     `generate --checkpoint general` makes: a canvas it plays on, its removal mode and checkers)."""
-    from rllock.errors import RLLockError
     from rllock.files.checkpoint import SHIPPED, read_metadata, shipped_names
-    from rllock.search.inference import check_fits
+    from rllock.search.serving import serves
 
-    if "general" not in shipped_names():
-        return False
-    try:
-        check_fits(task, read_metadata(SHIPPED / "general"), SHIPPED / "general")
-    except RLLockError:
-        return False
-    return True
+    return "general" in shipped_names() and serves(
+        read_metadata(SHIPPED / "general"), SHIPPED / "general", task
+    )
 
 
 def advice(task: Task, *, fits_general: bool, more: str) -> str:

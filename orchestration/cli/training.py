@@ -49,21 +49,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     from orchestration.train import train
 
     result = train(config, resume=bool(args.resume))
-    if result["interrupted"]:
+    if result.interrupted:
         sys.stdout.write(
-            f"train: stopped at learner step {result['steps']}; resume with: "
-            f"rllock train --resume {result['logdir']}\n"
+            f"train: stopped at learner step {result.steps}; resume with: "
+            f"rllock train --resume {result.logdir}\n"
         )
-        return 128 + int(result["stop_signal"] or signal.SIGINT)  # 130 after Ctrl-C, 143 after SIGTERM
-    val = result["validation"]
-    last = "none (it did not fit the budget)" if val is None else f"{100 * val['success_rate']:.1f}% valid"
-    best = result["best_success_rate"]
+        return 128 + int(result.stop_signal or signal.SIGINT)  # 130 after Ctrl-C, 143 after SIGTERM
+    val, best = result.validation, result.best_success_rate
+    last = "none (it did not fit the budget)" if val is None else f"{100 * val.success_rate:.1f}% valid"
     sys.stdout.write(
-        f"train: {result['steps']} learner steps, {result['episodes']} self-play episodes "
-        f"({result['episodes_per_sec']:.2f}/s, {result['simulations_per_sec']:.0f} simulations/s) in "
-        f"{result['seconds']:.0f} s; last validation {last}, best "
+        f"train: {result.steps} learner steps, {result.episodes} self-play episodes "
+        f"({result.episodes_per_sec:.2f}/s, {result.simulations_per_sec:.0f} simulations/s) in "
+        f"{result.seconds:.0f} s; last validation {last}, best "
         f"{'none yet' if best < 0 else f'{100 * best:.1f}%'}\n"
-        f"checkpoints: {result['logdir']}/best (best validated) and {result['logdir']}/checkpoints (latest), "
+        f"checkpoints: {result.logdir}/best (best validated) and {result.logdir}/checkpoints (latest), "
         f"TensorBoard events beside them\n"
     )
     return 0

@@ -36,10 +36,6 @@ class Verdict:
         return asdict(self)
 
 
-def _voxel_of(labels: np.ndarray, value: int) -> tuple[int, ...]:
-    return tuple(int(c) for c in np.argwhere(labels == value)[0])
-
-
 def validate_labels(labels: np.ndarray, pieces: int | None = None) -> int:
     """K, after checking that the ids are exactly 1..K with K >= 2. `pieces` is K where the assembly's
     file names it; else K is the largest id."""

@@ -47,6 +47,17 @@ class Episode:
     actions: np.ndarray  # int16[T]: the candidate taken (what PPO learns from)
 
 
+@dataclass(frozen=True)
+class BufferCounts:
+    """A replay buffer's counts, as it reports them after taking a batch."""
+
+    size: int  # transitions held
+    added: int  # transitions ever added
+    successes: int  # held transitions of successful episodes
+    received_bytes: int  # the array bytes of every episode it was sent
+    peak_rss_mb: float  # its process's peak resident memory
+
+
 class Player(Protocol):
     """Plays lockstep batches of `batch` episodes: a `Searcher`, or PPO's `rllock.search.ppo.PolicyPlayer`."""
 

@@ -23,14 +23,15 @@ from tqdm import tqdm
 
 from rllock.config import MCTSConfig, NetConfig
 from rllock.core.env import Task, assembly_key, final_labels
-from rllock.core.verifier import CHECKER_VERSION
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files.assembly import PictureWriter, write_assembly
+from rllock.files.orbax_io import restore_like
 from rllock.search.base import Episode, Player, derive_seed
 from rllock.search.mcts import play_groups
 from rllock.search.methods import players
-from rllock.search.network import fit_canvas, init_params
+from rllock.search.network import init_params, params_template
+from rllock.search.serving import Wanted, served
 
 log = logging.getLogger(__name__)
 
@@ -54,70 +55,30 @@ def load_network(source: str | Path | ckpt.Checkpoint) -> tuple[ckpt.Checkpoint,
     against a template from `jax.eval_shape`."""
     checkpoint = ckpt.open_checkpoint(source)
     net = checkpoint.metadata.config.net
-    template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
-    params = ckpt.restore_like(checkpoint.step_dir, template, partial=True)["params"]
+    params = restore_like(checkpoint.step_dir, {"params": params_template(net)}, partial=True)["params"]
     return checkpoint, net, params
 
 
-MAX_CANVAS = 16
-"""The largest canvas a multi-task checkpoint plays on beyond its own: the U-Net's cost per evaluation
-grows with the canvas's C^3 voxels (docs/benchmarks.md)."""
-
-
-def check_fits(task: Task, saved: ckpt.Metadata, where: Path) -> int:
-    """The canvas on which a multi-task checkpoint plays `task`, a task it can serve (its removal mode and
-    checkers): the smallest canvas it was trained on where the shape fits, else the smallest larger one
-    that does, up to MAX_CANVAS. The U-Net is convolutional and its value reads a mean over the canvas,
-    so its weights do not depend on the side; docs/benchmarks.md measures how well they carry over to
-    larger canvases."""
-    for key, here in (("removal", task.removal), ("checker_version", CHECKER_VERSION)):
-        if saved.task.get(key) != here:
-            raise RLLockError(f"checkpoint {where} was made for {key} {saved.task.get(key)!r}, not {here!r}")
-    fits = [c for c in saved.canvases if max(task.topology.dims) <= c]
-    if fits:
-        return min(fits)
-    canvas = fit_canvas(task, dataclasses.replace(saved.config.net, canvas=None)).canvas
-    assert canvas is not None
-    if canvas > MAX_CANVAS:
-        raise RLLockError(
-            f"shape {task.shape_name} {task.topology.dims} does not fit the largest canvas checkpoint "
-            f"{where} plays on ({MAX_CANVAS}^3)"
-        )
-    return canvas
-
-
-def load_policy(
-    source: str | Path | ckpt.Checkpoint, expect: dict | None = None, *, task: Task | None = None
-) -> Policy:
+def load_policy(source: str | Path | ckpt.Checkpoint, wanted: Wanted = None) -> Policy:
     """The policy in a checkpoint (a run's log directory: its best checkpoint; a shipped name; or a
-    checkpoint already opened). A single-task checkpoint plays its own task; `expect`, a task identity,
-    must match it. A multi-task checkpoint plays `task` (on a larger canvas than its own where the shape
-    needs one: `check_fits`)."""
+    checkpoint already opened) for `wanted` (`rllock.search.serving.served`: a single-task checkpoint's
+    own task, checked against `wanted` when given; a multi-task checkpoint's `wanted`, on the canvas it
+    plays it on)."""
     checkpoint, net, params = load_network(source)
     meta, step_dir = checkpoint.metadata, checkpoint.step_dir
-    if meta.multitask:
-        if task is None:
-            raise RLLockError(
-                f"checkpoint {step_dir} serves many tasks ({meta.task['tasks']}): name one with "
-                "--shape and --pieces"
-            )
-        canvas = check_fits(task, meta, step_dir)
+    task, canvas = served(meta, step_dir, wanted)
+    if canvas not in meta.canvases:
         trained = meta.canvases
-        if canvas not in trained:
-            log.info(
-                "%s was trained on %s; it plays %s on %d^3 (its weights fit any side)",
-                source if isinstance(source, str) else step_dir,
-                f"a {trained[0]}^3 canvas"
-                if len(trained) == 1
-                else ", ".join(f"{c}^3" for c in trained) + " canvases",
-                task.shape_name,
-                canvas,
-            )
-        net = dataclasses.replace(net, canvas=canvas)
-    else:
-        if expect is not None:
-            ckpt.check_same_task(meta.task, expect, step_dir)
-        task = ckpt.task_from_identity(meta.task)
+        log.info(
+            "%s was trained on %s; it plays %s on %d^3 (its weights fit any side)",
+            source if isinstance(source, str) else step_dir,
+            f"a {trained[0]}^3 canvas"
+            if len(trained) == 1
+            else ", ".join(f"{c}^3" for c in trained) + " canvases",
+            task.shape_name,
+            canvas,
+        )
+    net = dataclasses.replace(net, canvas=canvas)
     return Policy(task, net, meta.config.mcts, meta.config.method, params, str(step_dir), meta.step)
 
 

@@ -142,12 +142,10 @@ class CompiledSearch:
     def __init__(
         self, net: PolicyValueNet, config: MCTSConfig, space: type[NodeStore], task: Task, batch: int
     ):
-        if net.config.canvas is None:
-            raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
         self.net = net
         self.config = config
         self.space = space
-        self.canvas = net.config.canvas
+        self.canvas = net.config.canvas_side()
         self.batch = batch
         self.stores: dict[int, NodeStore] = {}
         self._shapes = _expansion_shapes(

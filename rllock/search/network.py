@@ -222,3 +222,8 @@ def chunk_logits(voxel_logits: jax.Array, chunks: jax.Array, valid: jax.Array) -
 def init_params(config: NetConfig, key: jax.Array) -> dict:
     dummy = jnp.zeros((1, config.canvas, config.canvas, config.canvas, planes_of(config)), jnp.float32)
     return PolicyValueNet(config).init(key, dummy)["params"]
+
+
+def params_template(config: NetConfig) -> dict:
+    """The parameters' structure, shapes and dtypes, without computing them: what a restore reads into."""
+    return jax.eval_shape(lambda key: init_params(config, key), jax.random.PRNGKey(0))

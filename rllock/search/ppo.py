@@ -64,10 +64,8 @@ class PolicyPlayer:
     counterpart of `rllock.search.mcts.Searcher`, with the same `play` signature."""
 
     def __init__(self, net: PolicyValueNet, config: MCTSConfig, task: Task, batch: int):
-        if net.config.canvas is None:
-            raise ValueError("the network config needs a concrete canvas (NetConfig.fitted)")
         self.config = config
-        self.canvas = net.config.canvas
+        self.canvas = net.config.canvas_side()
         self.task_planes = net.config.task_planes
         self.batch = batch
 

@@ -12,17 +12,15 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import json
 import re
 import shutil
 from pathlib import Path
 
-import jax
-import orbax.checkpoint as ocp
-
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
-from rllock.search.network import init_params
+from rllock.files import orbax_io
+from rllock.files.provenance import portable, portable_command
+from rllock.search.inference import load_network
 
 
 def describe(name: str, folder: Path | None = None) -> dict:
@@ -68,14 +66,14 @@ def portable_meta(meta: ckpt.Metadata) -> ckpt.Metadata:
     """`meta` with the absolute paths that training writes into it made `portable`: the config's
     `logdir` and `init` and those in each session's command line. Nothing else changes."""
     config = meta.config
-    init = None if config.init is None else ckpt.portable(config.init)
+    init = None if config.init is None else portable(config.init)
     sessions = tuple(
-        {**s, "command": ckpt.portable_command(s["command"])} if isinstance(s.get("command"), str) else s
+        {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
         for s in meta.sessions
     )
     return dataclasses.replace(
         meta,
-        config=dataclasses.replace(config, logdir=ckpt.portable(config.logdir), init=init),
+        config=dataclasses.replace(config, logdir=portable(config.logdir), init=init),
         sessions=sessions,
     )
 
@@ -94,12 +92,10 @@ def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
         raise RLLockError(f"bad checkpoint name {name!r}: use lower-case words like cube4-k9 or sofa-k19")
     step_dir = ckpt.find_step_dir(source)
     meta = portable_meta(ckpt.read_metadata(step_dir))
-    net = meta.config.net
-    template = {"params": jax.eval_shape(lambda key: init_params(net, key), jax.random.PRNGKey(0))}
-    params = ckpt.restore_like(step_dir, template, partial=True)
+    _, _, params = load_network(step_dir)
     shipped = {
         "name": name,
-        "from": ckpt.portable(step_dir),
+        "from": portable(step_dir),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
     meta = dataclasses.replace(meta, shipped=shipped)
@@ -107,16 +103,12 @@ def ship(source: Path, name: str, *, into: Path | None = None) -> Path:
     into.mkdir(parents=True, exist_ok=True)
     staging = into / f".{name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
-    (staging / "meta").mkdir(parents=True)
-    saver = ocp.StandardCheckpointer()
-    saver.save((staging / "state").absolute(), params)
-    saver.wait_until_finished()
-    (staging / "meta" / "metadata").write_text(json.dumps(meta.to_json()))
+    staging.mkdir(parents=True)
+    orbax_io.write_state(staging / "state", {"params": params})
+    ckpt.write_metadata(staging, meta)
     target = into / name
     # orbax wrote the absolute staging path in it; the file must stay, its words are for people.
-    (staging / "state" / COMMIT_SUCCESS).write_text(
-        commit_line(ckpt.portable((target / "state").absolute(), 2))
-    )
+    (staging / "state" / COMMIT_SUCCESS).write_text(commit_line(portable((target / "state").absolute(), 2)))
     shutil.rmtree(target, ignore_errors=True)
     staging.rename(target)
     return target
