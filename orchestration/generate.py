@@ -53,39 +53,59 @@ def generate_on_ray(
     started = start_ray(address)
     try:
         host_policy = dataclasses.replace(policy, params=jax.device_get(policy.params))
-        # Ray restarts a dead actor process and retries its round; one that fails for good is replaced.
-        options = dict(
-            num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
-        )
-
-        def new_actor():
-            # mypy skips class decorators: @ray.remote made GenerateActor an ActorClass, which has .options.
-            return GenerateActor.options(**options).remote(host_policy, batch)  # type: ignore[attr-defined]
-
-        pool = [new_actor() for _ in range(actors)]
         start = time.perf_counter()
         collector = Collector(
             policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
         )
-        calls = Calls()
-        for round_, actor in enumerate(pool):
-            calls.submit(actor, actor.play.remote(seed, round_), round_)
-        next_round = len(pool)
-        while calls and not collector.done and not stop():
-            done, failed = calls.wait(None)
-            for actor, round_, why in failed:
-                log.error("generation actor failed for good (%s); a new actor plays round %d", why, round_)
-                pool[pool.index(actor)] = actor = new_actor()
-                calls.submit(actor, actor.play.remote(seed, round_), round_)
-            for actor, _, (episodes, seconds) in done:
-                collector.take(episodes, seconds)
-                if not collector.done and time.perf_counter() - start < time_limit and not stop():
-                    calls.submit(actor, actor.play.remote(seed, next_round), next_round)
-                    next_round += 1
-        calls.cancel_all()  # rounds still under way are not needed
-        for actor in pool:
-            ray.kill(actor)
+        rounds = _Rounds(host_policy, batch, seed)
+        rounds.play(actors, collector, stop, lambda: time.perf_counter() - start >= time_limit or stop())
         return collector.result(time.perf_counter() - start)
     finally:
         if started:
             ray.shutdown()
+
+
+class _Rounds:
+    """The protocol's rounds handed out to actors of one core each, one round in flight per actor. Ray
+    restarts a dead actor process and retries its round; an actor that fails for good is replaced and
+    its round played by the new one."""
+
+    def __init__(self, policy: Policy, batch: int, seed: int):
+        self.policy, self.batch, self.seed = policy, batch, seed
+        self.options = dict(
+            num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
+        )
+        self.calls = Calls()
+        self.next_round = 0
+
+    def _actor(self):
+        # mypy skips class decorators: @ray.remote made GenerateActor an ActorClass, which has .options.
+        return GenerateActor.options(**self.options).remote(self.policy, self.batch)  # type: ignore[attr-defined]
+
+    def _hand(self, actor, round_: int | None = None) -> None:
+        """Hand `actor` a round: `round_`, or the next one."""
+        if round_ is None:
+            round_, self.next_round = self.next_round, self.next_round + 1
+        self.calls.submit(actor, actor.play.remote(self.seed, round_), round_)
+
+    def play(
+        self, actors: int, collector: Collector, stop: Callable[[], bool], over: Callable[[], bool]
+    ) -> None:
+        """Rounds until `collector` is done or `stop()`; after `over()` no round is handed out and those
+        under way finish. Then the actors are stopped."""
+        pool = [self._actor() for _ in range(actors)]
+        for actor in pool:
+            self._hand(actor)
+        while self.calls and not collector.done and not stop():
+            done, failed = self.calls.wait(None)
+            for actor, round_, why in failed:
+                log.error("generation actor failed for good (%s); a new actor plays round %d", why, round_)
+                pool[pool.index(actor)] = actor = self._actor()
+                self._hand(actor, round_)
+            for actor, _, (episodes, seconds) in done:
+                collector.take(episodes, seconds)
+                if not collector.done and not over():
+                    self._hand(actor)
+        self.calls.cancel_all()  # rounds still under way are not needed
+        for actor in pool:
+            ray.kill(actor)

@@ -36,7 +36,7 @@ from orchestration import validation
 from orchestration.builder import Start, start_buffer, start_learner, start_pool, workload_of
 from orchestration.pacing import Pacing, Schedule, final_reserve
 from orchestration.pool import NodeWatch, start_ray
-from orchestration.recorder import Recorder
+from orchestration.recorder import Counters, Recorder
 from orchestration.validation import Score
 from rllock.config import TrainConfig
 from rllock.errors import RLLockError
@@ -286,22 +286,9 @@ class _Run:
         )
 
     def _charts(self) -> None:
-        c, p, step = self.counters, self.progress, self.learner.step
-        p.memory["driver"] = peak_rss_mb()
-        seconds = max(c.seconds, 1e-9)
-        self.recorder.scalars(
-            {
-                "charts/episodes_per_sec": c.episodes / seconds,
-                "charts/simulations_per_sec": c.simulations / seconds,
-                "charts/learner_steps_per_sec": step / seconds,
-                "charts/policy_lag": p.lag,
-                "charts/selfplay_success_rate": c.successes / max(c.episodes, 1),
-                "buffer/size": min(c.transitions, self.config.buffer_capacity),
-                "buffer/success_transitions": p.buffer_successes,
-                **{f"memory/{kind}_peak_mb": mb for kind, mb in p.memory.items()},
-            },
-            step,
-        )
+        self.progress.memory["driver"] = peak_rss_mb()
+        values = _chart_values(self.counters, self.progress, self.learner.step, self.config.buffer_capacity)
+        self.recorder.scalars(values, self.learner.step)
 
     def _checkpoint(self) -> None:
         ray.get(self.buffer.snapshot.remote(str(self.recorder.logdir / "replay.npz")))
@@ -326,3 +313,18 @@ class _Run:
         )
         left = max(0.0, self.schedule.deadline - now)
         log.info("%svalidation skipped: %s, %.0f s are left", "final " if final else "", need, left)
+
+
+def _chart_values(c: Counters, p: _Progress, step: int, capacity: int) -> dict[str, float]:
+    """The run's TensorBoard charts: throughput, policy lag, self-play success, buffer and memory."""
+    seconds = max(c.seconds, 1e-9)
+    return {
+        "charts/episodes_per_sec": c.episodes / seconds,
+        "charts/simulations_per_sec": c.simulations / seconds,
+        "charts/learner_steps_per_sec": step / seconds,
+        "charts/policy_lag": p.lag,
+        "charts/selfplay_success_rate": c.successes / max(c.episodes, 1),
+        "buffer/size": min(c.transitions, capacity),
+        "buffer/success_transitions": p.buffer_successes,
+        **{f"memory/{kind}_peak_mb": mb for kind, mb in p.memory.items()},
+    }

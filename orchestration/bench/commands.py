@@ -35,7 +35,15 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_throughput(bench: argparse._SubParsersAction) -> None:
-    """The speed benches: the compiled checkers, the solver on the paper's cubes, self-play."""
+    """The speed benches: the compiled checkers, the solver on the paper's cubes, self-play, scaling and
+    large shapes."""
+    _add_checkers_and_solve(bench)
+    _add_selfplay(bench)
+    _add_scaling(bench)
+    _add_shapes(bench)
+
+
+def _add_checkers_and_solve(bench: argparse._SubParsersAction) -> None:
     p = bench.add_parser("checkers", help="raw chunks sampled and checked per second on one core")
     p.add_argument("--shape", default="cube6")
     p.add_argument("--pieces", type=int, default=25)
@@ -51,6 +59,8 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_solve)
 
+
+def _add_selfplay(bench: argparse._SubParsersAction) -> None:
     p = bench.add_parser("selfplay", help="self-play episodes and simulations per second for actor counts")
     p.add_argument("--actors", default="1,2", help="comma-separated actor counts")
     p.add_argument("--shape", default="cube4")
@@ -68,6 +78,8 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_selfplay)
 
+
+def _add_scaling(bench: argparse._SubParsersAction) -> None:
     p = bench.add_parser(
         "scaling",
         help="episodes and learner steps per second for actor counts, on one Ray node and on several",
@@ -91,6 +103,8 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_scaling)
 
+
+def _add_shapes(bench: argparse._SubParsersAction) -> None:
     p = bench.add_parser(
         "shapes", help="large shapes swept over K: time to the first valid assembly, solver and general"
     )

@@ -244,50 +244,18 @@ def _typed(values: np.ndarray, dtype: str = "i2") -> dict:
     return {"dtype": dtype, "bdata": base64.b64encode(values.astype("<" + dtype).tobytes()).decode("ascii")}
 
 
-def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
-    """One self-contained page (plotly.js embedded, no network): a 3D view to turn and zoom, and a
-    slider and play button that step through the disassembly."""
-    import plotly.io  # imported here: only the HTML page needs plotly
+def _frame_data(meshes: list[tuple[np.ndarray, np.ndarray]], step: Step) -> list[dict]:
+    """Every piece's vertices at one step of the disassembly."""
+    out = []
+    for (vertices, _), off, shown in zip(meshes, step.offsets, step.present):
+        # A removed piece collapses to one point: its triangles have no area and draw nothing.
+        at = vertices + off if shown else np.broadcast_to(vertices[0], vertices.shape)
+        out.append({"type": "mesh3d", "x": _typed(at[:, 0]), "y": _typed(at[:, 1]), "z": _typed(at[:, 2])})
+    return out
 
-    pieces = pieces_of(labels)
-    k = len(pieces)
-    colors = piece_colors(k)
-    steps = disassembly_steps(verdict)
-    lo, hi = _scene_bounds(pieces, steps)
-    meshes = [_mesh_arrays(p) for p in pieces]
 
-    def coords(step: Step) -> list[dict]:
-        out = []
-        for (vertices, _), off, shown in zip(meshes, step.offsets, step.present):
-            # A removed piece collapses to one point: its triangles have no area and draw nothing.
-            at = vertices + off if shown else np.broadcast_to(vertices[0], vertices.shape)
-            out.append(
-                {"type": "mesh3d", "x": _typed(at[:, 0]), "y": _typed(at[:, 1]), "z": _typed(at[:, 2])}
-            )
-        return out
-
-    names = [f"piece {i + 1}" + (" (key)" if i == 0 else "") for i in range(k)]
-    traces = [
-        {
-            **xyz,
-            "i": _typed(tri[:, 0], "i4"),
-            "j": _typed(tri[:, 1], "i4"),
-            "k": _typed(tri[:, 2], "i4"),
-            "color": _hex(colors[i]),
-            "flatshading": True,
-            "name": names[i],
-            "showlegend": True,
-            "hovertemplate": names[i] + "<extra></extra>",
-        }
-        for i, (xyz, (_, tri)) in enumerate(zip(coords(steps[0]), meshes))
-    ]
-    summary = f"<br><sup>{order_caption(k)}, {verdict.removal} removal</sup>"
-    titles = [f"step {s}/{len(steps) - 1}: {step.caption}{summary}" for s, step in enumerate(steps)]
-    # Every frame sets every piece, so that the slider may jump to any step from any other.
-    frames = [
-        {"name": str(s), "data": coords(step), "traces": list(range(k)), "layout": {"title": {"text": t}}}
-        for s, (step, t) in enumerate(zip(steps, titles))
-    ]
+def _controls(count: int) -> tuple[dict, dict]:
+    """(the slider over `count` steps, the play and pause buttons)."""
     still = {"mode": "immediate", "frame": {"duration": 0, "redraw": True}, "transition": {"duration": 0}}
     play = {**still, "fromcurrent": True, "frame": {"duration": 700, "redraw": True}}
     slider = {
@@ -297,9 +265,7 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
         "y": 0,
         "pad": {"t": 10, "b": 10},
         "currentvalue": {"prefix": "step "},
-        "steps": [
-            {"method": "animate", "label": str(s), "args": [[str(s)], still]} for s in range(len(steps))
-        ],
+        "steps": [{"method": "animate", "label": str(s), "args": [[str(s)], still]} for s in range(count)],
     }
     buttons = {
         "type": "buttons",
@@ -314,6 +280,11 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
             {"label": "❚❚", "method": "animate", "args": [[None], still]},
         ],
     }
+    return slider, buttons
+
+
+def _scene(lo: np.ndarray, hi: np.ndarray) -> dict[str, object]:
+    """Fixed axes around every step, in the assembly's proportions."""
     span = hi - lo
     scene: dict[str, object] = {
         f"{a}axis": {"range": [float(lo[n]), float(hi[n])], "autorange": False, "title": {"text": a}}
@@ -324,9 +295,50 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
         aspectratio={a: float(span[n] / span.max()) for n, a in enumerate("xyz")},
         camera={"eye": {"x": 1.0, "y": -1.4, "z": 0.9}},
     )
+    return scene
+
+
+def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
+    """One self-contained page (plotly.js embedded, no network): a 3D view to turn and zoom, and a
+    slider and play button that step through the disassembly."""
+    import plotly.io  # imported here: only the HTML page needs plotly
+
+    pieces = pieces_of(labels)
+    k = len(pieces)
+    colors = piece_colors(k)
+    steps = disassembly_steps(verdict)
+    meshes = [_mesh_arrays(p) for p in pieces]
+    names = [f"piece {i + 1}" + (" (key)" if i == 0 else "") for i in range(k)]
+    traces = [
+        {
+            **xyz,
+            "i": _typed(tri[:, 0], "i4"),
+            "j": _typed(tri[:, 1], "i4"),
+            "k": _typed(tri[:, 2], "i4"),
+            "color": _hex(colors[i]),
+            "flatshading": True,
+            "name": names[i],
+            "showlegend": True,
+            "hovertemplate": names[i] + "<extra></extra>",
+        }
+        for i, (xyz, (_, tri)) in enumerate(zip(_frame_data(meshes, steps[0]), meshes))
+    ]
+    summary = f"<br><sup>{order_caption(k)}, {verdict.removal} removal</sup>"
+    titles = [f"step {s}/{len(steps) - 1}: {step.caption}{summary}" for s, step in enumerate(steps)]
+    # Every frame sets every piece, so that the slider may jump to any step from any other.
+    frames = [
+        {
+            "name": str(s),
+            "data": _frame_data(meshes, step),
+            "traces": list(range(k)),
+            "layout": {"title": {"text": t}},
+        }
+        for s, (step, t) in enumerate(zip(steps, titles))
+    ]
+    slider, buttons = _controls(len(steps))
     layout = {
         "title": {"text": titles[0], "x": 0.02, "font": {"size": 16}},
-        "scene": scene,
+        "scene": _scene(*_scene_bounds(pieces, steps)),
         "sliders": [slider],
         "updatemenus": [buttons],
         "margin": {"l": 0, "r": 0, "t": 70, "b": 0},
