@@ -91,7 +91,9 @@ class Recorder:
             self.latest,
             step,
             state,
-            ckpt.Metadata.of(self.config, self.task, step, validation, asdict(counters), self.sessions),
+            ckpt.Metadata.of(
+                self.config, self.task, step, validation, asdict(counters), self.sessions
+            ).to_json(),
         )
 
     def best_checkpoint(
@@ -107,7 +109,9 @@ class Recorder:
             self.best,
             step,
             state,
-            ckpt.Metadata.of(self.config, self.task, step, validation, asdict(counters), self.sessions),
+            ckpt.Metadata.of(
+                self.config, self.task, step, validation, asdict(counters), self.sessions
+            ).to_json(),
         )
         if assembly is not None:
             self._best_assembly(*assembly, step)

@@ -293,3 +293,79 @@ def _dataclass_type(f: dataclasses.Field) -> type | None:
     """The nested config class of a field, or None for a leaf."""
     factory = f.default_factory
     return factory if factory is not dataclasses.MISSING and dataclasses.is_dataclass(factory) else None
+
+
+@dataclass(frozen=True)
+class GuideConfig:
+    window: int = 8
+    """Side of the guide network's cubic window around the piece just placed (a multiple of 4)."""
+    guide_features: tuple[int, ...] = (16, 32)
+    """Channels of the window's two convolutions (each followed by a 2x2x2 pooling)."""
+    guide_hidden: int = 64
+    """Width of the hidden layers that join the window and the global features."""
+
+
+@dataclass(frozen=True)
+class GuideTrainConfig:
+    """`rllock train-guide`: Ray actors run the search solver on a curriculum of random shapes, shipped
+    shapes and K, guided by the latest network; the states it finished, with how far the search below
+    each went, train the guide network (`rllock.search.guide`)."""
+
+    minutes: float = 10.0
+    """Wall-clock budget, a hard limit (on resume: the time to add)."""
+    logdir: str = "runs/guide"
+    """Checkpoints, the replay snapshot and TensorBoard events go here."""
+    seed: int = 0
+    """Seeds the network, the learner's sampling and the curriculum of every actor."""
+    address: str | None = None
+    """Join this Ray cluster instead of starting a local Ray instance."""
+    actors: int = 0
+    """Search actors; 0 = one per CPU core left after the learner's (at least one)."""
+    search_seconds: float = 20.0
+    """Seconds a search actor gives one curriculum task (it stops at the first assembly)."""
+    min_voxels: int = 100
+    """The curriculum's smallest random shape."""
+    max_voxels: int = 2000
+    """The curriculum's largest random shape."""
+    max_pieces: int = 150
+    """The curriculum's largest K (pieces have at least 4 voxels, K at least 5)."""
+    buffer_capacity: int = 200_000
+    """States kept; the oldest are overwritten."""
+    batch_size: int = 256
+    """States per learner step."""
+    guide_learning_rate: float = 1e-3
+    """Adam's learning rate."""
+    replay_ratio: float = 8.0
+    """At most this many sampled states per state the searches produced."""
+    publish_every: int = 50
+    """Learner steps between weight versions handed to the actors."""
+    checkpoint_minutes: float = 2.0
+    """Minutes between checkpoints."""
+    guide: GuideConfig = field(default_factory=GuideConfig)
+
+    def validate(self) -> None:
+        positive = {
+            "minutes": self.minutes,
+            "search_seconds": self.search_seconds,
+            "buffer_capacity": self.buffer_capacity,
+            "batch_size": self.batch_size,
+            "guide_learning_rate": self.guide_learning_rate,
+            "replay_ratio": self.replay_ratio,
+            "publish_every": self.publish_every,
+            "checkpoint_minutes": self.checkpoint_minutes,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
+        if self.actors < 0:
+            raise RLLockError(f"--actors must be >= 0, got {self.actors}")
+        if not 8 <= self.min_voxels <= self.max_voxels:
+            raise RLLockError("--min-voxels must be at least 8 and at most --max-voxels")
+        if self.max_pieces < 5:
+            raise RLLockError(f"--max-pieces must be at least 5, got {self.max_pieces}")
+        if self.guide.window < 4 or self.guide.window % 4:
+            raise RLLockError(f"--window must be a positive multiple of 4, got {self.guide.window}")
+        if self.batch_size > self.buffer_capacity:
+            raise RLLockError("--batch-size cannot exceed --buffer-capacity")
+        if Path(self.logdir).exists() and not Path(self.logdir).is_dir():
+            raise RLLockError(f"--logdir {self.logdir} is a file")

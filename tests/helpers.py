@@ -60,7 +60,7 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     mngr = orbax_io.manager(run / "best", keep=1)
     counters = {"seconds": seconds, "episodes": 40}
     meta = ckpt.Metadata.of(config, task, step, validation, counters, [provenance()])
-    orbax_io.save(mngr, step, learner.state(), meta)
+    orbax_io.save(mngr, step, learner.state(), meta.to_json())
     mngr.close()
     return learner
 
@@ -83,7 +83,7 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     config = TrainConfig(tasks=spec, net=net, mcts=mcts)
     mngr = orbax_io.manager(run / "best", keep=1)
     meta = ckpt.Metadata.of(config, tasks.identity(), step, None, {}, [provenance()])
-    orbax_io.save(mngr, step, learner.state(), meta)
+    orbax_io.save(mngr, step, learner.state(), meta.to_json())
     mngr.close()
     return learner
 

@@ -11,7 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from orchestration.bench.paper import PAPER_TASKS, Arm, PaperRow, cache_start, format_paper_table, row_json
+from orchestration.bench.arms import Arm, cache_start
+from orchestration.bench.paper import PAPER_TASKS, PaperRow, format_paper_table, row_json
 
 # Compiles the network's forward pass (a program without host callbacks, so JAX may cache it) in a
 # fresh process set up as the CLI does, and reports what it found in the cache.

@@ -70,7 +70,7 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
 def _save(tmp_path, task, learner):
     config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
     mngr = orbax_io.manager(tmp_path / "run" / "best", keep=1)
-    orbax_io.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step))
+    orbax_io.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step).to_json())
     mngr.close()
     return tmp_path / "run"
 

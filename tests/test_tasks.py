@@ -22,7 +22,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from actors.selfplay import PlaySpec, SelfPlayWorker
 from learner.learner import Learner
 from learner.replay import ReplayBuffer
-from orchestration.bench.paper import Arm
+from orchestration.bench.arms import Arm
 from orchestration.bench.transfer import (
     TransferTask,
     bench_transfer_task,

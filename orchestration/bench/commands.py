@@ -41,6 +41,28 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     _add_selfplay(bench)
     _add_scaling(bench)
     _add_shapes(bench)
+    _add_guide(bench)
+
+
+def _add_guide(bench: argparse._SubParsersAction) -> None:
+    p = bench.add_parser(
+        "guide", help="the solver against the same search guided by a guide network, and untrained"
+    )
+    p.add_argument(
+        "--cells",
+        default="cube5:13,sofa:19,desia-dog:60,mario:60",
+        help="comma-separated SHAPE:K or SHAPE:K:path (a mesh: FILE@RESOLUTION:K)",
+    )
+    p.add_argument(
+        "--guide", default="guide", help="a rllock train-guide run or checkpoint (default: shipped)"
+    )
+    p.add_argument(
+        "--arms", default="solver,guided,untrained", help="solver, guided, untrained (comma-separated)"
+    )
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
+    p.add_argument("--time-limit", type=positive_float, default=60.0, help="seconds per arm and seed")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=entry.cmd_bench_guide)
 
 
 def _add_checkers_and_solve(bench: argparse._SubParsersAction) -> None:

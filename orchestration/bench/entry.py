@@ -352,3 +352,20 @@ def cmd_bench_success(args: argparse.Namespace) -> int:
         )
     sys.stdout.write("\n".join(lines) + "\n")
     return 0
+
+
+def cmd_bench_guide(args: argparse.Namespace) -> int:
+    from orchestration.bench.guide import bench_guide, format_guide_table, parse_cells, rows_json
+    from rllock.search.guide_checkpoint import load_guide
+
+    cells = parse_cells(args.cells)
+    arms = choices(args.arms, "--arms", ("solver", "guided", "untrained"))
+    seeds = [int(s) for s in items(args.seeds, "--seeds") if s.isdigit()] or [0]
+    guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
+    rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit)
+    if args.json:
+        sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "rows": rows_json(rows)}) + "\n")
+    else:
+        command = "rllock " + " ".join(sys.argv[1:])
+        sys.stdout.write(format_guide_table(rows, arms, guide, command, args.time_limit))
+    return 0

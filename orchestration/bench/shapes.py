@@ -22,6 +22,7 @@ from rllock.core.feasibility import impossibility
 from rllock.core.shapes import load_shape
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
+from rllock.search.guide import Guide
 from rllock.search.inference import load_policy, with_simulations
 from rllock.search.solver import SearchStats, search
 
@@ -69,10 +70,11 @@ def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> 
     return out
 
 
-def solver_cell(task: Task, time_limit: float, seed: int) -> Cell:
+def solver_cell(task: Task, time_limit: float, seed: int, guide: Guide | None = None) -> Cell:
+    """Seconds to the search's first valid assembly (verified), with `guide` when given."""
     stats = SearchStats()
     start = time.perf_counter()
-    for found in search(task, seed=seed, time_limit=time_limit, stats=stats):
+    for found in search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide):
         seconds = time.perf_counter() - start
         if not verify_labels(found.labels, task.removal).valid:
             raise AssertionError(f"the search returned an assembly of {task.shape_name} the verifier rejects")

@@ -82,13 +82,18 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     check_feasible(task)
+    guide = None
+    if args.guide is not None:
+        from rllock.search.guide_checkpoint import load_guide
+
+        guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     out = fresh_out(args.out)
     written: list[Path] = []
     stats = SearchStats()
     start = time.perf_counter()
     try:
         with graceful_stop() as stop:
-            _solve_into(task, args, out, written, stats, stop)
+            _solve_into(task, args, out, written, stats, stop, guide)
             stopped = stop()
     except (KeyboardInterrupt, SystemError) as exc:
         if not is_interrupt(exc):
@@ -108,9 +113,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], stats, stop) -> None:
+def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], stats, stop, guide) -> None:
     """Search until --count assemblies, --time-limit or `stop()`, writing each (verified) as it comes and
-    adding its folder to `written`; the bar shows the search's progress."""
+    adding its folder to `written`; the bar shows the search's progress. `guide`: a guide network or
+    None (the plain search)."""
     from rllock.search.solver import SearchConfig, search
 
     config = SearchConfig()
@@ -124,7 +130,14 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
 
         limit = args.time_limit
         found = search(
-            task, seed=args.seed, time_limit=limit, config=config, stats=stats, stop=stop, report=report
+            task,
+            seed=args.seed,
+            time_limit=limit,
+            config=config,
+            stats=stats,
+            stop=stop,
+            report=report,
+            guide=guide,
         )
         for f in found:
             folder = out / f"assembly_{len(written) + 1:03d}"
@@ -133,7 +146,11 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
                 f.labels,
                 removal=task.removal,
                 shape=task.shape_name,
-                method={"name": "search", **asdict(config)},
+                method={
+                    "name": "search",
+                    **asdict(config),
+                    **({} if guide is None else {"guide": guide.source}),
+                },
                 seed=args.seed,
                 timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
                 picture=picture,
@@ -246,6 +263,15 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
     add_task_args(p)
     add_protocol_args(p, count=1, time_limit=60.0, batch=False, seed=False)
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
+    p.add_argument(
+        "--guide",
+        nargs="?",
+        const="guide",
+        default=None,
+        metavar="CHECKPOINT",
+        help="order and prune the search with a guide network: alone, the shipped one; or a run of "
+        "rllock train-guide, or one of its checkpoints (default: the plain search)",
+    )
     p.set_defaults(func=cmd_solve)
 
 

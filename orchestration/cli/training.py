@@ -189,7 +189,44 @@ def cmd_pretrained(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_guide(args: argparse.Namespace) -> int:
+    from rllock.config import GuideTrainConfig
+
+    if args.resume:
+        from orchestration.guide_train import resume_config
+
+        config = resume_config(Path(args.resume), args.minutes)
+    else:
+        config = from_flags(GuideTrainConfig, args)
+    config.validate()
+    ray_on_loopback_unless(config.address)
+    from orchestration.guide_train import train_guide
+
+    result = train_guide(config, resume=bool(args.resume))
+    if result.interrupted:
+        sys.stdout.write(f"train-guide: stopped; resume with: rllock train-guide --resume {result.logdir}\n")
+        return 128 + int(result.stop_signal or signal.SIGINT)
+    sys.stdout.write(
+        f"train-guide: {result.steps} learner steps, {result.searches} searches ({result.solved} solved) in "
+        f"{result.seconds:.0f} s; checkpoints: {result.logdir}/checkpoints; use: rllock solve ... --guide "
+        f"{result.logdir}\n"
+    )
+    return 0
+
+
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    from rllock.config import GuideTrainConfig
+
+    p = subparsers.add_parser(
+        "train-guide",
+        help="train the guide network of rllock solve --guide on Ray (a curriculum of searches)",
+    )
+    add_flags(p, GuideTrainConfig)
+    p.add_argument(
+        "--resume", metavar="LOGDIR", default=None, help="continue the guide run in LOGDIR; --minutes to add"
+    )
+    p.set_defaults(func=cmd_train_guide)
+
     p = subparsers.add_parser("train", help="self-play training on Ray (local, or a cluster with --address)")
     add_flags(
         p,

@@ -15,7 +15,6 @@ import jax
 import orbax.checkpoint as ocp
 
 from rllock.errors import RLLockError
-from rllock.files.checkpoint import Metadata
 
 
 def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
@@ -26,15 +25,13 @@ def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
     )
 
 
-def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: Metadata) -> None:
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> None:
     """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
     if step in mngr.all_steps():
         mngr.delete(step)
     mngr.save(
         step,
-        args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(metadata.to_json())
-        ),
+        args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(metadata)),
         force=True,
     )
     mngr.wait_until_finished()

@@ -32,6 +32,7 @@ from rllock.core.env import (
     tightest_subset,
 )
 from rllock.core.feasibility import check_feasible
+from rllock.search.guide import Guide
 
 # How often a running search reports its progress, in seconds.
 PROGRESS_EVERY = 0.5
@@ -73,6 +74,9 @@ class SearchConfig:
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
+    prune_below: float = 0.02
+    """With a guide network: children whose value is below this are dropped (the network judges that
+    the search below them places almost none of the pieces left), except the best of a node's."""
 
     def share_for(self, task: Task) -> float:
         """The share of closed-proposal chunks for `task`."""
@@ -131,6 +135,11 @@ def _never() -> bool:
     return False
 
 
+Record = Callable[[State, float], None]
+"""Takes a state the search left and its value target: the share of the pieces left at that state that
+the search below it placed (1: it reached an assembly; 0: a dead end). What a guide network learns."""
+
+
 def _dfs(
     task: Task,
     rng: np.random.Generator,
@@ -141,11 +150,15 @@ def _dfs(
     stats: SearchStats,
     stop: Callable[[], bool] = _never,
     report: Callable[[SearchStats], None] | None = None,
+    guide: Guide | None = None,
+    record: Record | None = None,
 ):
     """One restart: DFS from the root for at most `budget` expansions until a state with `target`
     placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
-    PROGRESS_EVERY seconds."""
+    PROGRESS_EVERY seconds. A `guide` orders the children by its values (all children of a node in one
+    call) and drops the hopeless ones; `record` takes every state whose subtree the search finished, with
+    its value target."""
     expansions = 0
     share, deep = config.share_for(task), config.deep(task)
 
@@ -176,30 +189,64 @@ def _dfs(
         """Children in pop order (best last); their own candidates are attached under lookahead."""
         kids = [apply_chunk(state, c) for c in chunks]
         if not config.lookahead or state.placed + 1 == target:
-            return [(k, None) for k in kids]
+            return _guided(task, [(k, None) for k in kids], guide, config)
         scored = []
         for kid in kids:
             grand, score = sample(kid)
             if len(grand):
                 scored.append((score, kid, grand))
+            elif record is not None:
+                record(kid, 0.0)  # a dead end: nothing can be placed next
         scored.sort(key=lambda t: t[0])
-        return [(kid, grand) for _, kid, grand in scored]
+        return _guided(task, [(kid, grand) for _, kid, grand in scored], guide, config)
 
     root = initial_state(task)
     stack = [children_of(root, sample(root)[0])]
+    path = [[root, 0]]  # the state each stack level holds the children of, and the deepest below it
     while stack:
         if expansions >= budget or time.monotonic() > deadline or stop():
+            while record is not None and path:
+                _leave(path, target, record)  # cut short: how far each went is a lower bound
             return None, expansions
         if not stack[-1]:
             stack.pop()
+            _leave(path, target, record)
             continue
         child, grand = stack[-1].pop()
         if child.placed == target:
+            for level in path:
+                level[1] = target
+            while path:
+                _leave(path, target, record)
             return child, expansions
         if grand is None:
             grand = sample(child)[0]
         stack.append(children_of(child, grand))
+        path.append([child, child.placed])
     return None, expansions
+
+
+def _guided(
+    task: Task, children: list[tuple[State, np.ndarray | None]], guide: Guide | None, config: SearchConfig
+) -> list[tuple[State, np.ndarray | None]]:
+    """`children` in pop order: as they are without a guide; with one, by its values (best last, ties in
+    their order), without those valued below `config.prune_below`."""
+    if guide is None or not children:
+        return children
+    values = guide.values(task, [kid for kid, _ in children])
+    order = sorted(range(len(children)), key=lambda i: (values[i], i))
+    kept = [children[i] for i in order if values[i] >= config.prune_below]
+    return kept or [children[order[-1]]]  # never all: the best child is tried whatever its value
+
+
+def _leave(path: list[list], target: int, record: Record | None) -> None:
+    """The search is done with the subtree of `path`'s last state: record it, and tell its parent how
+    deep it went."""
+    state, deepest = path.pop()
+    if path:
+        path[-1][1] = max(path[-1][1], deepest)
+    if record is not None and state.placed < target:
+        record(state, (deepest - state.placed) / (target - state.placed))
 
 
 def search(
@@ -211,11 +258,14 @@ def search(
     stats: SearchStats | None = None,
     stop: Callable[[], bool] = _never,
     report: Callable[[SearchStats], None] | None = None,
+    guide: Guide | None = None,
+    record: Record | None = None,
 ) -> Iterator[Found]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
-    to date (and passed to `report` every PROGRESS_EVERY seconds). A task that provably has no assembly
-    is an error at once (`rllock.core.feasibility`)."""
+    to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network orders and prunes
+    the children (`_dfs`); `record` takes the states the search finished with their value targets. A
+    task that provably has no assembly is an error at once (`rllock.core.feasibility`)."""
     check_feasible(task)
     stats = SearchStats() if stats is None else stats
     rng = np.random.default_rng(seed)
@@ -227,7 +277,9 @@ def search(
         restart += 1
         stats.restarts += 1
         budget = config.restart_unit(task, task.pieces - 1) * luby(restart)
-        state, expansions = _dfs(task, rng, config, budget, deadline, task.pieces - 1, stats, stop, report)
+        state, expansions = _dfs(
+            task, rng, config, budget, deadline, task.pieces - 1, stats, stop, report, guide, record
+        )
         used += expansions
         if state is None:
             continue
@@ -272,13 +324,15 @@ def solve(
     time_limit: float = 60.0,
     seed: int = 0,
     config: SearchConfig = SearchConfig(),
+    guide: Guide | None = None,
 ) -> list[np.ndarray]:
     """Up to `count` distinct assemblies of `task` found by the search within `time_limit` seconds, as
-    label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier."""
+    label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier. `guide`: a
+    guide network (`rllock.search.guide`) that orders and prunes the search's children."""
     from rllock.core.verifier import verify_labels
 
     found = []
-    for f in search(task, seed=seed, time_limit=time_limit, config=config):
+    for f in search(task, seed=seed, time_limit=time_limit, config=config, guide=guide):
         if not verify_labels(f.labels, task.removal).valid:
             raise AssertionError("the search returned an assembly the verifier rejects")
         found.append(f.labels)

@@ -1,0 +1,129 @@
+"""`rllock bench guide`: seconds to the first valid assembly, the search solver against the same search
+guided by a guide network, and guided by the same network untrained (learning is the cause), side by
+side on the same seeds, one core a search.
+
+A cell is SHAPE:K or SHAPE:K:path (a shape name, a .puz/.vol/.npy file, or a mesh with @RESOLUTION:
+bunny.stl@24:40). Each arm of a cell runs each seed once; the table gives each seed's seconds, or none
+within the limit with the most pieces placed, and the median; the ratio is solver over guided medians
+(a time limit stands for an unsolved seed, so a ratio with unsolved seeds is a bound).
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+from dataclasses import dataclass
+
+import jax
+
+from orchestration.bench.arms import warm_process
+from orchestration.bench.shapes import Cell, solver_cell
+from orchestration.bench.specs import parse_list
+from rllock.core.env import Task, make_task
+from rllock.errors import RLLockError
+from rllock.search.guide import Guide, init_guide
+
+log = logging.getLogger(__name__)
+
+ARMS = ("solver", "guided", "untrained")
+
+
+@dataclass(frozen=True)
+class GuideCell:
+    label: str
+    shape: str
+    pieces: int
+    removal: str
+    resolution: int | None
+
+    def task(self) -> Task:
+        return make_task(self.shape, self.pieces, self.removal, resolution=self.resolution, name=self.label)
+
+
+def parse_cells(spec: str) -> list[GuideCell]:
+    return parse_list(spec, [], _cell, "--cells")
+
+
+def _cell(item: str) -> GuideCell:
+    parts = item.split(":")
+    removal = "straight"
+    if parts[-1] in ("path", "straight"):
+        removal = parts.pop()
+    if len(parts) < 2 or not parts[-1].isdigit():
+        raise RLLockError(f"bad cell {item!r}: use SHAPE:K or SHAPE:K:path (a mesh as FILE@RESOLUTION:K)")
+    shape, pieces = ":".join(parts[:-1]), int(parts[-1])
+    resolution = None
+    if "@" in shape:
+        shape, _, res = shape.rpartition("@")
+        if not res.isdigit():
+            raise RLLockError(f"bad resolution in cell {item!r}: use FILE@RESOLUTION:K")
+        resolution = int(res)
+    return GuideCell(item, shape, pieces, removal, resolution)
+
+
+@dataclass(frozen=True)
+class GuideRow:
+    cell: GuideCell
+    voxels: int
+    arms: dict[str, list[Cell]]  # by arm, one per seed
+
+
+def bench_guide(
+    cells: list[GuideCell], guide: Guide, *, seeds: list[int], arms: list[str], time_limit: float
+) -> list[GuideRow]:
+    untrained = Guide(guide.config, init_guide(guide.config, jax.random.PRNGKey(0)), "untrained (seed 0)")
+    guides = {"solver": None, "guided": guide, "untrained": untrained}
+    rows = []
+    for cell in cells:
+        task = cell.task()
+        if cell.resolution is None:  # a mesh is voxelized once, by `task()`
+            warm_process(cell.shape, cell.pieces)
+        results: dict[str, list[Cell]] = {arm: [] for arm in arms}
+        for seed in seeds:
+            for arm in arms:
+                results[arm].append(solver_cell(task, time_limit, seed, guides[arm]))
+                log.info("%s seed %d %s: %s", cell.label, seed, arm, results[arm][-1].text(task.pieces))
+        rows.append(GuideRow(cell, task.size, results))
+    return rows
+
+
+def median_seconds(cells: list[Cell]) -> float:
+    """The median of the seeds' seconds, an unsolved seed counted at the time limit."""
+    return statistics.median(c.seconds if c.seconds is not None else c.limit for c in cells)
+
+
+def format_guide_table(
+    rows: list[GuideRow], arms: list[str], guide: Guide, command: str, limit: float
+) -> str:
+    head = " | ".join(f"{arm} (s per seed; median)" for arm in arms)
+    lines = [
+        f"Seconds to the first valid assembly, {limit:.0f} s limit, guide {guide.source} (`{command}`):",
+        "",
+        f"| cell | N | {head} | solver / guided |",
+        "|---|---|" + "---|" * len(arms) + "---|",
+    ]
+    for row in rows:
+        k = row.cell.pieces
+        cells = [
+            ", ".join(c.text(k) for c in row.arms[arm]) + f"; {median_seconds(row.arms[arm]):.1f}"
+            for arm in arms
+        ]
+        ratio = "-"
+        if "solver" in row.arms and "guided" in row.arms:
+            ratio = f"{median_seconds(row.arms['solver']) / median_seconds(row.arms['guided']):.2f}"
+        lines.append(f"| {row.cell.label} | {row.voxels} | " + " | ".join(cells) + f" | {ratio} |")
+    return "\n".join(lines) + "\n"
+
+
+def rows_json(rows: list[GuideRow]) -> list[dict]:
+    return [
+        {
+            "cell": r.cell.label,
+            "voxels": r.voxels,
+            **{
+                arm: [{"seconds": c.seconds, "placed": c.placed} for c in cells]
+                for arm, cells in r.arms.items()
+            },
+        }
+        for r in rows
+    ]

@@ -1,0 +1,263 @@
+"""`rllock train-guide`: the guide network trained by our actor-learner system.
+
+Search actors (`actors.guide_actor`) each run the search solver on a curriculum task with the latest
+weights version and push the states it finished, with their value targets, into the replay buffer actor
+(`learner.guide_learner.GuideBuffer`); this process learns from the buffer (at most `replay_ratio`
+sampled states per state produced), hands out a new weights version every `publish_every` steps, writes
+TensorBoard events and keeps:
+  LOGDIR/checkpoints/<step>/  the latest checkpoints (orbax: learner state + metadata)
+  LOGDIR/replay.npz           the replay buffer, snapshotted with every checkpoint
+`--minutes` is a hard budget (searches under way at its end are dropped). `rllock train-guide --resume
+LOGDIR` continues from the newest readable checkpoint with its config, optimizer state, PRNG key,
+counters and replay buffer. Ctrl-C and SIGTERM stop cleanly with a final checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import ray
+from tensorboardX import SummaryWriter
+
+from actors.guide_actor import GuideActor, SearchReport
+from actors.selfplay import actor_env
+from learner.guide_learner import GuideBuffer, GuideLearner
+from orchestration.pool import Calls, on_driver_node, start_ray
+from rllock.config import GuideTrainConfig, from_json
+from rllock.errors import RLLockError
+from rllock.files import checkpoint as ckpt
+from rllock.files import orbax_io
+from rllock.files.provenance import provenance
+from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GuideCounters:
+    """Run totals that survive a resume."""
+
+    searches: int = 0
+    solved: int = 0
+    guided: int = 0
+    guided_solved: int = 0
+    states: int = 0
+    seconds: float = 0.0
+    version: int = 0
+
+    def add(self, report: SearchReport) -> None:
+        self.searches += 1
+        self.solved += report.solved
+        self.guided += report.guided
+        self.guided_solved += report.guided and report.solved
+        self.states += report.states
+
+
+@dataclass(frozen=True)
+class GuideResult:
+    steps: int
+    searches: int
+    solved: int
+    seconds: float
+    logdir: str
+    interrupted: bool
+    stop_signal: int | None
+
+
+def resume_config(logdir: Path, minutes: float) -> GuideTrainConfig:
+    """The config of the guide run in `logdir`, from its newest readable checkpoint, with `minutes` more."""
+    doc = ckpt.newest_readable(logdir, read_guide_metadata)
+    return dataclasses.replace(
+        from_json(GuideTrainConfig, doc["config"]), logdir=str(logdir), minutes=minutes
+    )
+
+
+def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
+    config.validate()
+    logdir = Path(config.logdir)
+    if not resume and ckpt.saved_steps(logdir / "checkpoints"):
+        raise RLLockError(f"{logdir} already holds a guide run; resume it with --resume {logdir}")
+    began = time.monotonic()
+    started = start_ray(config.address)  # before JAX's threads: Ray forks
+    try:
+        run = _GuideRun(config, began, resume)
+        previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            return run.loop()
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+            run.writer.close()
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _start_buffer(config: GuideTrainConfig) -> Any:
+    """The replay buffer actor, on the driver's node (it snapshots into the run's folder). Its handle is
+    Any: Ray types an ActorHandle's methods as Never."""
+    return (
+        ray.remote(num_cpus=0)(GuideBuffer)
+        .options(scheduling_strategy=on_driver_node())
+        .remote(config.buffer_capacity, config.guide.window)
+    )
+
+
+class _GuideRun:
+    def __init__(self, config: GuideTrainConfig, began: float, resume: bool):
+        self.config, self.began = config, began
+        self.logdir = Path(config.logdir)
+        self.learner = GuideLearner(config.guide, config.guide_learning_rate, jax.random.PRNGKey(config.seed))
+        self.counters, self.sessions = GuideCounters(), []
+        if resume:
+            self._restore()
+        self.sessions.append(provenance())
+        self.logdir.mkdir(parents=True, exist_ok=True)
+        self.writer = SummaryWriter(str(self.logdir), purge_step=self.learner.step if resume else None)
+        self.manager = orbax_io.manager(self.logdir / "checkpoints", keep=3)
+        self.buffer = _start_buffer(config)
+        snapshot = self.logdir / "replay.npz"
+        if resume and snapshot.exists():
+            log.info("replay buffer restored: %d states", ray.get(self.buffer.restore.remote(str(snapshot))))
+        self.interrupted, self.stop_signal = False, None
+        self.available = 0  # states in the buffer, as the last search's push reported
+
+    def _restore(self) -> None:
+        def restore(step_dir: Path) -> dict:
+            doc = read_guide_metadata(step_dir)
+            self.learner.load_state(orbax_io.restore_like(step_dir, self.learner.state()))
+            return doc
+
+        doc = ckpt.newest_readable(self.logdir, restore)
+        self.counters = GuideCounters(**doc.get("counters", {}))
+        self.sessions = list(doc.get("sessions", []))
+        log.info(
+            "resuming %s at learner step %d (%d searches so far)",
+            self.logdir,
+            self.learner.step,
+            self.counters.searches,
+        )
+
+    def request_stop(self, signum, frame) -> None:
+        del frame
+        if self.interrupted:
+            raise KeyboardInterrupt
+        self.interrupted, self.stop_signal = True, signum
+        log.warning("stopping: a final checkpoint first (again to abort)")
+
+    def _actors(self) -> int:
+        if self.config.actors:
+            return self.config.actors
+        return max(1, int(ray.cluster_resources().get("CPU", 1)) - 1)
+
+    def loop(self) -> GuideResult:
+        c, config = self.counters, self.config
+        deadline = self.began + 60 * config.minutes
+        options = dict(
+            num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
+        )
+        number = [0]
+
+        def new_actor():
+            number[0] += 1
+            seed = config.seed * 1000 + number[0] + c.searches
+            return GuideActor.options(**options).remote(seed, config)  # type: ignore[attr-defined]
+
+        weights = [ray.put(jax.device_get(self.learner.params))]
+        calls = Calls()
+        for _ in range(self._actors()):
+            actor = new_actor()
+            calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
+        log.info(
+            "training the guide: %d search actor(s) for %g min; logs in %s",
+            len(calls.inflight),
+            config.minutes,
+            self.logdir,
+        )
+        base, start, last_checkpoint = c.seconds, time.monotonic(), time.monotonic()
+        while not self.interrupted and time.monotonic() < deadline:
+            can_learn = (
+                self.available >= config.batch_size
+                and self.learner.step * config.batch_size < config.replay_ratio * c.states
+            )
+            done, failed = calls.wait(0.0 if can_learn else min(1.0, max(0.0, deadline - time.monotonic())))
+            for actor, _, why in failed:
+                log.error("search actor failed for good (%s); a new actor takes its place", why)
+                actor = new_actor()
+                calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
+            for actor, _, report in done:
+                self._count(report)
+                calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
+            if can_learn and self._learn():
+                weights = [ray.put(jax.device_get(self.learner.params))]
+            c.seconds = base + time.monotonic() - start
+            if time.monotonic() - last_checkpoint >= 60 * config.checkpoint_minutes:
+                self._checkpoint()
+                last_checkpoint = time.monotonic()
+        calls.cancel_all()
+        self._checkpoint()
+        return GuideResult(
+            self.learner.step,
+            c.searches,
+            c.solved,
+            time.monotonic() - self.began,
+            str(self.logdir),
+            self.interrupted,
+            self.stop_signal,
+        )
+
+    def _count(self, report: SearchReport) -> None:
+        c = self.counters
+        c.add(report)
+        assert report.buffer is not None
+        self.available = report.buffer.size
+        log.info(
+            "search %d (%s, %s): %s, %d/%d placed, %d states in %.0f s",
+            c.searches,
+            report.task,
+            "guided" if report.guided else "plain",
+            "solved" if report.solved else "not solved",
+            report.placed,
+            report.pieces - 1,
+            report.states,
+            report.seconds,
+        )
+        step = self.learner.step
+        self.writer.add_scalar("search/solved", float(report.solved), c.searches)
+        self.writer.add_scalar("search/placed_share", report.placed / max(report.pieces - 1, 1), c.searches)
+        self.writer.add_scalar("buffer/size", report.buffer.size, step)
+        self.writer.add_scalar("buffer/solved_states", report.buffer.successes, step)
+        if c.guided:
+            self.writer.add_scalar("search/guided_solve_rate", c.guided_solved / c.guided, step)
+        plain = c.searches - c.guided
+        if plain:
+            self.writer.add_scalar("search/plain_solve_rate", (c.solved - c.guided_solved) / plain, step)
+
+    def _learn(self) -> bool:
+        sample = ray.get(self.buffer.sample.remote(self.config.batch_size, self.learner.next_seed()))
+        loss = self.learner.update(sample)
+        if self.learner.step % 10 == 0 or self.learner.step == 1:
+            self.writer.add_scalar("losses/value", loss, self.learner.step)
+        if self.learner.step % self.config.publish_every == 0:
+            self.counters.version += 1
+            return True
+        return False
+
+    def _checkpoint(self) -> None:
+        ray.get(self.buffer.snapshot.remote(str(self.logdir / "replay.npz")))
+        doc = guide_metadata(self.config, self.learner.step, asdict(self.counters), self.sessions)
+        orbax_io.save(self.manager, self.learner.step, self.learner.state(), doc)
+        self.writer.flush()
+        log.info(
+            "checkpoint at learner step %d (%d searches, %d solved)",
+            self.learner.step,
+            self.counters.searches,
+            self.counters.solved,
+        )

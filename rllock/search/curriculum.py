@@ -1,0 +1,68 @@
+"""The guide network's curriculum (`rllock train-guide`): a task per search, drawn from random compact
+shapes and shipped shapes, with K from 5 to `max_pieces` and both removal modes.
+
+Pieces have 4 to 40 voxels (n drawn log-uniformly, so that small pieces, where searches fail, are as
+common as large ones), and K = N // n within [5, max_pieces]. mario and spider, the shapes the
+benchmarks in docs/benchmarks.md find hardest, are left out, so that what the guide does there is
+zero-shot; so are their meshes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rllock.config import GuideTrainConfig
+from rllock.core.env import Task, make_task
+from rllock.core.feasibility import impossibility
+from rllock.core.shapes import crop, load_shape
+
+SHAPES = ("cube4", "cube5", "cube6", "ring", "stairs", "tube", "sofa", "bunny", "shelf", "cubeweird",
+          "desia-bunny", "desia-dog", "box:10x8x6", "box:12x12x3")  # fmt: skip
+PATH_SHARE = 0.3  # of the tasks use DESIA's path removal
+
+
+def draw_task(rng: np.random.Generator, config: GuideTrainConfig) -> Task:
+    """A feasible task of the curriculum (module docstring)."""
+    while True:
+        if rng.random() < 0.5:
+            name = str(SHAPES[rng.integers(len(SHAPES))])
+            grid, label = load_shape(name), name
+        else:
+            size = int(np.exp(rng.uniform(np.log(config.min_voxels), np.log(config.max_voxels))))
+            grid, label = blob(rng, size), f"random{size}"
+        voxels = int(grid.sum())
+        n = int(np.exp(rng.uniform(np.log(4), np.log(40))))
+        k = int(np.clip(voxels // n, 5, config.max_pieces))
+        if k > voxels // 2:
+            continue
+        removal = "path" if rng.random() < PATH_SHARE else "straight"
+        task = make_task(grid, k, removal, name=label)
+        if impossibility(task) is None:
+            return task
+
+
+def blob(rng: np.random.Generator, size: int) -> np.ndarray:
+    """A connected compact shape of `size` voxels, cropped: grown one voxel at a time from a centre, a
+    free neighbour chosen with weight (its filled neighbours)^3, as `rllock.core.tasks.random_shape`
+    grows them, with the weights kept up to date instead of recomputed (linear in the canvas, not in
+    the shape, per voxel)."""
+    side = int(np.ceil(2.0 * size ** (1 / 3))) + 2
+    filled = np.zeros((side,) * 3, bool)
+    touching = np.zeros((side,) * 3, np.int64)
+    _fill(filled, touching, (side // 2,) * 3)
+    for _ in range(size - 1):
+        cumulative = np.cumsum(np.where(filled, 0, touching).ravel() ** 3)
+        flat = int(np.searchsorted(cumulative, rng.random() * cumulative[-1], side="right"))
+        pick = np.unravel_index(flat, filled.shape)
+        _fill(filled, touching, pick)
+    return crop(filled)
+
+
+def _fill(filled: np.ndarray, touching: np.ndarray, at: tuple) -> None:
+    filled[at] = True
+    for axis in range(3):
+        for step in (-1, 1):
+            there = list(at)
+            there[axis] += step
+            if 0 < there[axis] < filled.shape[axis] - 1:  # the border stays empty: the shape fits
+                touching[tuple(there)] += 1

@@ -1,0 +1,164 @@
+"""The guide network: a learned judgement of a search state, at a cost that does not grow with the shape.
+
+The search solver (`rllock.search.solver`) places pieces one at a time; where it fails, the failure is set
+many pieces before the end by what remains of the shape. The guide gives each child of a node a value in
+[0, 1], the share of the pieces still to place that the search below it is expected to place (1: it
+reaches an assembly), from what it sees of the state:
+- a window of W^3 voxels centred on the piece just placed, where the next piece starts (`WINDOW`
+  channels: the remaining volume R, the placed pieces, outside the shape);
+- features (`GLOBALS`): how much is left of the shape and of the pieces, the piece size, N and K, and
+  R's shape in a (2W)^3 box around the window: its thin, surface and interior voxels, its extent.
+Every input is read from boxes of a fixed size and a few counts, so one evaluation (features and
+network) costs the same at N = 500 and N = 40,000, and one set of weights serves every shape and every
+K (docs/benchmarks.md measures it). All children of a node are evaluated in one call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rllock.config import GuideConfig
+from rllock.core.env import State, Task
+
+CHANNELS = 3  # remaining volume, placed pieces, outside the shape
+GLOBALS = 14
+
+
+class GuideNet(nn.Module):
+    """(window [B, W, W, W, CHANNELS], globals [B, GLOBALS]) -> value logits [B]."""
+
+    config: GuideConfig
+
+    @nn.compact
+    def __call__(self, window: jax.Array, features: jax.Array) -> jax.Array:
+        x = window
+        for f in self.config.guide_features:
+            x = nn.relu(nn.Conv(f, (3, 3, 3))(x))
+            x = nn.avg_pool(x, (2, 2, 2), strides=(2, 2, 2))
+        x = jnp.concatenate([x.reshape(x.shape[0], -1), features], axis=-1)
+        x = nn.relu(nn.Dense(self.config.guide_hidden)(x))
+        x = nn.relu(nn.Dense(self.config.guide_hidden)(x))
+        return nn.Dense(1)(x)[:, 0]
+
+
+def init_guide(config: GuideConfig, key: jax.Array) -> dict:
+    w = config.window
+    return GuideNet(config).init(key, jnp.zeros((1, w, w, w, CHANNELS)), jnp.zeros((1, GLOBALS)))["params"]
+
+
+@partial(jax.jit, static_argnames=("config",))
+def guide_values(params: dict, window: jax.Array, features: jax.Array, *, config: GuideConfig) -> jax.Array:
+    """Values in [0, 1] for a batch of encoded states."""
+    logits: jax.Array = GuideNet(config).apply({"params": params}, window, features)  # type: ignore[assignment]
+    return jax.nn.sigmoid(logits)
+
+
+@dataclass(frozen=True)
+class Encoded:
+    """A batch of states as the guide sees them."""
+
+    window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
+    features: np.ndarray  # float32 [B, GLOBALS]
+
+
+def encode(task: Task, states: list[State], window: int) -> Encoded:
+    """The guide's inputs for `states` of `task` (module docstring); each state's last placed piece is
+    the window's centre (the root, with none: the shape's centre)."""
+    windows = np.zeros((len(states), window, window, window, CHANNELS), np.int8)
+    features = np.zeros((len(states), GLOBALS), np.float32)
+    for i, state in enumerate(states):
+        windows[i] = _window(task, state, window)
+        features[i] = _features(task, state, 2 * window)
+    return Encoded(windows, features)
+
+
+def _centre(task: Task, state: State) -> np.ndarray:
+    """Where the next piece starts: the piece just placed (at the root, the shape's centre)."""
+    topo = task.topology
+    if state.placed:
+        # P_i's voxels are the only ones labelled i; their bounding box's centre is cheap and close.
+        last = topo.coords[state.labels == state.placed]
+        return (last.min(axis=0) + last.max(axis=0)) / 2
+    return (np.array(topo.dims) - 1) / 2
+
+
+def _remaining_box(task: Task, state: State, lo: np.ndarray, side: int) -> np.ndarray:
+    """int8 [side, side, side]: 1 on R, 0 on placed pieces, -1 outside the shape, in the box from `lo`."""
+    topo = task.topology
+    out = np.full((side, side, side), -1, np.int8)
+    dims = np.array(topo.dims)
+    a, b = np.maximum(lo, 0), np.minimum(lo + side, dims)
+    if (b <= a).any():
+        return out
+    index = topo.index[a[0] : b[0], a[1] : b[1], a[2] : b[2]]
+    inside = index >= 0
+    values = np.where(inside, (state.labels[np.where(inside, index, 0)] == 0).astype(np.int8), -1)
+    out[tuple(slice(a[i] - lo[i], b[i] - lo[i]) for i in range(3))] = values
+    return out
+
+
+def _window(task: Task, state: State, w: int) -> np.ndarray:
+    box = _remaining_box(task, state, np.round(_centre(task, state)).astype(np.int64) - w // 2, w)
+    return np.stack([box == 1, box == 0, box == -1], axis=-1).astype(np.int8)
+
+
+def _features(task: Task, state: State, side: int) -> np.ndarray:
+    """GLOBALS features: the task and how much is left (O(1)), and R's shape in the box of `side`^3
+    around the window's centre (its thin, surface and interior voxels, its extent, its share)."""
+    n, k, size = task.piece_size, task.pieces, task.size
+    left = k - 1 - state.placed
+    r = size - n * state.placed  # P1..Pi hold n voxels each
+    lo = np.round(_centre(task, state)).astype(np.int64) - side // 2
+    box = _remaining_box(task, state, lo - 1, side + 2) == 1
+    inner = box[1:-1, 1:-1, 1:-1]
+    degree = (
+        box[:-2, 1:-1, 1:-1].astype(np.int8)
+        + box[2:, 1:-1, 1:-1]
+        + box[1:-1, :-2, 1:-1]
+        + box[1:-1, 2:, 1:-1]
+        + box[1:-1, 1:-1, :-2]
+        + box[1:-1, 1:-1, 2:]
+    )[inner]
+    there = int(inner.sum())
+    extent = np.zeros(3)
+    if there:
+        where = np.argwhere(inner)
+        extent = (where.max(axis=0) - where.min(axis=0) + 1) / side
+    return np.array(
+        [
+            r / size,
+            left / max(k - 1, 1),
+            min(n, 64) / 64,
+            np.log(size) / 11,
+            np.log(k) / 8,
+            float((degree <= 2).mean()) if there else 0.0,  # thin voxels: strands no piece can be cut from
+            float((degree <= 4).mean()) if there else 0.0,  # R's surface
+            float((degree == 6).mean()) if there else 0.0,  # R's interior
+            *extent,
+            there / side**3,
+            r / max(left, 1) / max(n, 1) / 2,  # voxels left per piece left, against n
+            float(state.placed > 0),
+        ],
+        np.float64,
+    )
+
+
+@dataclass(frozen=True)
+class Guide:
+    """A guide network with its weights: `values(task, states)` in one call."""
+
+    config: GuideConfig
+    params: dict
+    source: str  # a checkpoint's path or name, or "untrained (seed N)"
+
+    def values(self, task: Task, states: list[State]) -> np.ndarray:
+        if not states:
+            return np.zeros(0, np.float32)
+        e = encode(task, states, self.config.window)
+        return np.asarray(guide_values(self.params, e.window, e.features, config=self.config))

@@ -1,0 +1,210 @@
+"""The guide network and the search it guides: the plain search unchanged, the inputs against a simple
+reference, the value targets the search records, guided assemblies verified, bad guide checkpoints."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+
+import jax
+import numpy as np
+import pytest
+from helpers import run_cli
+
+from learner.guide_learner import GuideBuffer, GuideLearner
+from rllock.config import GuideConfig, GuideTrainConfig, to_json
+from rllock.core.env import apply_chunk, initial_state, make_task, sample_accepted
+from rllock.core.verifier import verify_labels
+from rllock.errors import RLLockError
+from rllock.files import orbax_io
+from rllock.search.curriculum import blob, draw_task
+from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode, init_guide
+from rllock.search.guide_checkpoint import guide_metadata, load_guide
+from rllock.search.solver import SearchStats, search, solve
+
+CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
+
+
+def _untrained(seed: int = 0) -> Guide:
+    return Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(seed)), f"untrained ({seed})")
+
+
+def test_the_search_without_a_guide_is_the_solver_of_before_bit_for_bit():
+    """Assemblies, node expansions and restarts of the plain search on fixed seeds, hashed: the digest
+    was recorded from the solver before the guide existed (commit 8fc97c6)."""
+    digest = hashlib.sha256()
+    for shape, k, removal, seed in [
+        ("cube4", 7, "straight", 0),
+        ("cube5", 13, "straight", 1),
+        ("box:6x5x4", 12, "path", 2),
+        ("desia-dog", 30, "straight", 0),
+    ]:
+        stats = SearchStats()
+        for i, found in enumerate(
+            search(make_task(shape, k, removal), seed=seed, time_limit=120, stats=stats)
+        ):
+            digest.update(found.labels.astype(np.int16).tobytes())
+            digest.update(str(found.expansions).encode())
+            if i == 1:
+                break
+        digest.update(str((stats.expansions, stats.restarts)).encode())
+    assert digest.hexdigest() == "b1bc94138f0585e14f9f8ebdea37be3dfe84b9ae04750554810ccda9b1498bed"
+
+
+def _reference_window(task, state, w):
+    """Each window cell looked up one by one."""
+    coords = task.topology.coords
+    if state.placed:
+        last = coords[state.labels == state.placed]
+        centre = (last.min(axis=0) + last.max(axis=0)) / 2
+    else:
+        centre = (np.array(task.topology.dims) - 1) / 2
+    lo = np.round(centre).astype(int) - w // 2
+    label_at = {tuple(c): int(label) for c, label in zip(coords, state.labels)}
+    out = np.zeros((w, w, w, CHANNELS), np.int8)
+    for x in range(w):
+        for y in range(w):
+            for z in range(w):
+                label = label_at.get((lo[0] + x, lo[1] + y, lo[2] + z))
+                out[x, y, z] = [label == 0, label is not None and label > 0, label is None]
+    return out
+
+
+def test_the_window_matches_a_cell_by_cell_reference_and_features_are_bounded():
+    rng = np.random.default_rng(3)
+    for shape, k in [("bunny", 20), ("box:9x5x3", 9), ("desia-dog", 40)]:
+        task = make_task(shape, k)
+        state = initial_state(task)
+        states = [state]
+        for _ in range(5):
+            chunks = sample_accepted(task, state, seed=int(rng.integers(1 << 30)), num_samples=256)
+            if not len(chunks):
+                break
+            state = apply_chunk(state, chunks[0])
+            states.append(state)
+        encoded = encode(task, states, 8)
+        assert encoded.window.shape == (len(states), 8, 8, 8, CHANNELS)
+        assert encoded.features.shape == (len(states), GLOBALS)
+        for i, s in enumerate(states):
+            np.testing.assert_array_equal(encoded.window[i], _reference_window(task, s, 8))
+        assert np.isfinite(encoded.features).all() and (encoded.features >= 0).all()
+        remaining = encoded.features[:, 0]  # R's share of the shape falls with each piece
+        assert (np.diff(remaining) < 0).all() and remaining[0] == 1.0
+
+
+def test_the_search_records_value_targets_it_can_stand_behind():
+    """Every finished state has a target in [0, 1]; the path to an assembly (the root among it) is 1,
+    dead ends are 0, and a state's target never exceeds what its subtree could place."""
+    task = make_task("cube4", 7)
+    recorded = []
+    found = next(search(task, seed=0, time_limit=60, record=lambda s, v: recorded.append((s, v))))
+    assert verify_labels(found.labels, task.removal).valid
+    targets = np.array([v for _, v in recorded])
+    assert ((targets >= 0) & (targets <= 1)).all()
+    assert any(s.placed == 0 and v == 1.0 for s, v in recorded)  # the root of the solved restart
+    assert (targets == 0).any() and (targets == 1).any()
+    solved = [s for s, v in recorded if v == 1.0]
+    assert {s.placed for s in solved} >= set(range(task.pieces - 1))  # every depth of the path
+
+
+def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():
+    task = make_task("cube5", 13)
+    # A guide that judges everything hopeless: pruning must still keep each node's best child.
+    params = dict(jax.tree.map(np.asarray, _untrained().params))
+    params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, -10.0)}
+    hopeless = Guide(CONFIG, params, "hopeless")
+    assert (hopeless.values(task, [initial_state(task)]) < 0.02).all()
+    for guide in (_untrained(), hopeless):
+        found = solve(task, count=1, time_limit=120, seed=0, guide=guide)
+        assert len(found) == 1 and verify_labels(found[0], task.removal).valid
+
+
+def test_the_curriculum_draws_feasible_varied_tasks():
+    config = GuideTrainConfig(max_voxels=800)
+    tasks = [draw_task(np.random.default_rng([5, i]), config) for i in range(12)]
+    assert all(5 <= t.pieces <= config.max_pieces and t.piece_size >= 2 for t in tasks)
+    assert {t.removal for t in tasks} == {"straight", "path"}
+    assert not any(t.shape_name in ("mario", "spider") for t in tasks)
+    grid = blob(np.random.default_rng(0), 300)
+    from rllock.core.shapes import is_connected
+
+    assert grid.sum() == 300 and is_connected(grid)
+
+
+def test_the_guide_learner_fits_the_buffers_targets():
+    buffer = GuideBuffer(64, 8)
+    rng = np.random.default_rng(0)
+    window = rng.integers(0, 2, size=(64, 8, 8, 8, CHANNELS)).astype(np.int8)
+    features = rng.random((64, GLOBALS)).astype(np.float32)
+    target = (features[:, 0] > 0.5).astype(np.float32)  # learnable from one feature
+    counts = buffer.add(window, features, target)
+    assert counts.size == 64 and counts.added == 64
+    learner = GuideLearner(CONFIG, 3e-3, jax.random.PRNGKey(0))
+    batch = buffer.sample(64, 0)
+    first = learner.update(batch)
+    for _ in range(150):
+        last = learner.update(batch)
+    assert last < 0.5 * first
+
+
+def _save_guide(folder, learner: GuideLearner, config: GuideTrainConfig):
+    mngr = orbax_io.manager(folder / "checkpoints", keep=1)
+    orbax_io.save(mngr, learner.step, learner.state(), guide_metadata(config, learner.step, {}, []))
+    mngr.close()
+
+
+def test_a_saved_guide_loads_with_its_weights_and_bad_ones_are_one_line_errors(tmp_path):
+    config = GuideTrainConfig(guide=CONFIG)
+    learner = GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(4))
+    _save_guide(tmp_path / "run", learner, config)
+    guide = load_guide(tmp_path / "run")
+    assert guide.config == CONFIG
+    for a, b in zip(jax.tree.leaves(guide.params), jax.tree.leaves(learner.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(RLLockError, match="policy checkpoint"):
+        load_guide("cube4-k7")
+    with pytest.raises(RLLockError, match="no such checkpoint"):
+        load_guide(tmp_path / "missing")
+    step_dir = next((tmp_path / "run" / "checkpoints").iterdir())
+    broken = tmp_path / "broken"
+    shutil.copytree(step_dir, broken)
+    (broken / "meta" / "metadata").write_text("{not json")
+    with pytest.raises(RLLockError, match="corrupted or unreadable"):
+        load_guide(broken)
+    damaged = tmp_path / "damaged"
+    shutil.copytree(step_dir, damaged)
+    for f in (damaged / "state").rglob("*"):
+        if f.is_file() and f.parent.name == "d":
+            f.write_bytes(b"\0" * 7)
+    with pytest.raises(RLLockError, match="corrupted or unreadable"):
+        load_guide(damaged)
+
+
+@pytest.mark.parametrize("guide", ["cube4-k7", "nowhere/run"])
+def test_solve_with_a_bad_guide_is_one_line_and_exit_2_before_any_search(tmp_path, guide):
+    code, _, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--guide", guide, "--out", str(tmp_path / "o")
+    )
+    assert code == 2 and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_solve_with_a_guide_writes_a_verified_assembly_that_names_it(tmp_path):
+    config = GuideTrainConfig(guide=CONFIG)
+    _save_guide(tmp_path / "run", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(1)), config)
+    code, out, err = run_cli(
+        "solve",
+        "--shape",
+        "cube4",
+        "--pieces",
+        "7",
+        "--guide",
+        str(tmp_path / "run"),
+        "--out",
+        str(tmp_path / "o"),
+    )
+    assert code == 0, err
+    doc = json.loads((tmp_path / "o" / "assembly_001" / "assembly.json").read_text())
+    assert "run/checkpoints" in doc["method"]["guide"]
+    assert to_json(config)["guide"]["window"] == 8
