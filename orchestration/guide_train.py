@@ -157,61 +157,68 @@ class _GuideRun:
             return self.config.actors
         return max(1, int(ray.cluster_resources().get("CPU", 1)) - 1)
 
-    def loop(self) -> GuideResult:
-        c, config = self.counters, self.config
-        deadline = self.began + 60 * config.minutes
+    def _new_actor(self) -> Any:
+        self.started += 1
+        seed = self.config.seed * 1000 + self.started + self.counters.searches
         options = dict(
             num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
         )
-        number = [0]
+        return GuideActor.options(**options).remote(seed, self.config)  # type: ignore[attr-defined]
 
-        def new_actor():
-            number[0] += 1
-            seed = config.seed * 1000 + number[0] + c.searches
-            return GuideActor.options(**options).remote(seed, config)  # type: ignore[attr-defined]
+    def _hand(self, actor: Any) -> None:
+        """Give `actor` its next search, with the newest weights."""
+        self.calls.submit(actor, actor.run.remote(self.weights, self.counters.version, self.buffer), None)
 
-        weights = [ray.put(jax.device_get(self.learner.params))]
-        calls = Calls()
+    def loop(self) -> GuideResult:
+        c, config = self.counters, self.config
+        deadline = self.began + 60 * config.minutes
+        self.started, self.calls = 0, Calls()
+        self.weights = [ray.put(jax.device_get(self.learner.params))]
         for _ in range(self._actors()):
-            actor = new_actor()
-            calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
+            self._hand(self._new_actor())
         log.info(
             "training the guide: %d search actor(s) for %g min; logs in %s",
-            len(calls.inflight),
+            self.started,
             config.minutes,
             self.logdir,
         )
         base, start, last_checkpoint = c.seconds, time.monotonic(), time.monotonic()
         while not self.interrupted and time.monotonic() < deadline:
-            can_learn = (
-                self.available >= config.batch_size
-                and self.learner.step * config.batch_size < config.replay_ratio * c.states
-            )
-            done, failed = calls.wait(0.0 if can_learn else min(1.0, max(0.0, deadline - time.monotonic())))
-            for actor, _, why in failed:
-                log.error("search actor failed for good (%s); a new actor takes its place", why)
-                actor = new_actor()
-                calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
-            for actor, _, report in done:
-                self._count(report)
-                calls.submit(actor, actor.run.remote(weights, c.version, self.buffer), None)
-            if can_learn and self._learn():
-                weights = [ray.put(jax.device_get(self.learner.params))]
+            self._turn(deadline)
             c.seconds = base + time.monotonic() - start
             if time.monotonic() - last_checkpoint >= 60 * config.checkpoint_minutes:
                 self._checkpoint()
                 last_checkpoint = time.monotonic()
-        calls.cancel_all()
+        self.calls.cancel_all()  # the budget is a hard limit: searches under way are dropped
         self._checkpoint()
+        elapsed = time.monotonic() - self.began
         return GuideResult(
             self.learner.step,
             c.searches,
             c.solved,
-            time.monotonic() - self.began,
+            elapsed,
             str(self.logdir),
             self.interrupted,
             self.stop_signal,
         )
+
+    def _turn(self, deadline: float) -> None:
+        """Collect finished searches (waiting up to 1 s for one when the learner may not step), hand their
+        actors the next, then take a learner step if the replay ratio allows."""
+        c, config = self.counters, self.config
+        can_learn = (
+            self.available >= config.batch_size
+            and self.learner.step * config.batch_size < config.replay_ratio * c.states
+        )
+        done, failed = self.calls.wait(0.0 if can_learn else min(1.0, max(0.0, deadline - time.monotonic())))
+        for _, _, why in failed:
+            log.error("search actor failed for good (%s); a new actor takes its place", why)
+            self._hand(self._new_actor())
+        for actor, _, report in done:
+            self._count(report)
+            self._hand(actor)
+        if can_learn and self._learn():
+            self.weights = [ray.put(jax.device_get(self.learner.params))]
 
     def _count(self, report: SearchReport) -> None:
         c = self.counters

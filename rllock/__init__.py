@@ -4,7 +4,10 @@ The public API, for a notebook or a script (names load their modules on first us
 stays light):
 
     make_task(shape, pieces, removal="straight")   a task: a shape (built-in name, file or bool grid) and K
-    solve(task, count=1, time_limit=60, seed=0)    assemblies by randomized search, no training
+    solve(task, count=1, time_limit=60, seed=0, guide=None)
+                                                   assemblies by randomized search, no training; with a
+                                                   guide network (`load_guide`) ordering and pruning it
+    load_guide(checkpoint="guide")                 a guide network: the shipped one, or a train-guide run
     load_policy(checkpoint)                        a trained network and its search settings
     generate(policy, count=, batch=, time_limit=, seed=, out=None)
                                                    the paper's protocol: batched MCTS until `count` valid
@@ -25,10 +28,11 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = ["generate", "load_policy", "make_task", "read_assembly", "solve", "verify"]
+__all__ = ["generate", "load_guide", "load_policy", "make_task", "read_assembly", "solve", "verify"]
 
 _API = {
     "generate": ("rllock.search.inference", "generate"),
+    "load_guide": ("rllock.search.guide_checkpoint", "load_guide"),
     "load_policy": ("rllock.search.inference", "load_policy"),
     "make_task": ("rllock.core.env", "make_task"),
     "read_assembly": ("rllock.files.assembly", "read_assembly"),

@@ -208,3 +208,59 @@ def test_solve_with_a_guide_writes_a_verified_assembly_that_names_it(tmp_path):
     doc = json.loads((tmp_path / "o" / "assembly_001" / "assembly.json").read_text())
     assert "run/checkpoints" in doc["method"]["guide"]
     assert to_json(config)["guide"]["window"] == 8
+
+
+def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):
+    from test_shipped_files import machine_paths
+
+    from rllock.search.guide_checkpoint import ship_guide
+    from rllock.search.pretrained import COMMIT_SUCCESS
+
+    monkeypatch.setattr(
+        "sys.argv", [f"{tmp_path}/venv/bin/rllock", "train-guide", "--logdir", str(tmp_path / "run")]
+    )
+    learner = GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(2))
+    config = GuideTrainConfig(guide=CONFIG, logdir=str(tmp_path / "run"))
+    from rllock.files.provenance import provenance
+
+    mngr = orbax_io.manager(tmp_path / "run" / "checkpoints", keep=1)
+    orbax_io.save(mngr, 3, learner.state(), guide_metadata(config, 3, {"searches": 9}, [provenance()]))
+    mngr.close()
+    target = ship_guide(tmp_path / "run", "myguide", into=tmp_path / "guides")
+    for path in (target / "meta" / "metadata", target / "state" / COMMIT_SUCCESS):
+        assert str(tmp_path) not in path.read_text() and not machine_paths(path.read_bytes()), path
+    doc = json.loads((target / "meta" / "metadata").read_text())
+    assert doc["shipped"]["name"] == "myguide" and doc["sessions"][0]["command"].startswith(
+        "rllock train-guide"
+    )
+    shipped = load_guide(target)
+    for a, b in zip(jax.tree.leaves(shipped.params), jax.tree.leaves(learner.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp_path):
+    """The command as a user runs it: search actors on Ray, the replay buffer actor, the learner,
+    orbax checkpoints and TensorBoard events; --resume continues the step count and the buffer."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = tmp_path / "run"
+    small = ["--search-seconds", "2", "--batch-size", "16", "--buffer-capacity", "4000", "--actors", "1",
+             "--max-voxels", "300", "--max-pieces", "20", "--guide-features", "4,8", "--guide-hidden", "16",
+             "--publish-every", "5", "--checkpoint-minutes", "0.2"]  # fmt: skip
+    code, out, err = run_cli("train-guide", "--minutes", "0.8", "--logdir", str(run), *small, timeout=240)
+    assert code == 0, err
+    steps = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps and steps[-1] > 0 and (run / "replay.npz").exists()
+    events = EventAccumulator(str(run))
+    events.Reload()
+    assert {"losses/value", "search/solved", "buffer/size"} <= set(events.Tags()["scalars"])
+    guide = load_guide(run)
+    task = make_task("cube4", 7)
+    assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
+    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.4", timeout=240)
+    assert code == 0, err
+    assert "resuming" in err and "replay buffer restored" in err
+    again = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
+    assert again[-1] > steps[-1]

@@ -103,7 +103,9 @@ def test_the_public_api_is_light_and_complete():
         "print(sorted(n for n in rllock.__all__ if callable(getattr(rllock, n))))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == str(["generate", "load_policy", "make_task", "read_assembly", "solve", "verify"])
+    assert out.strip() == str(
+        ["generate", "load_guide", "load_policy", "make_task", "read_assembly", "solve", "verify"]
+    )
 
 
 def test_api_solve_returns_verified_assemblies():

@@ -151,18 +151,23 @@ def _generate_into(args: argparse.Namespace, policy, out: Path, stop):
 
 def cmd_pretrained(args: argparse.Namespace) -> int:
     from rllock.files.checkpoint import shipped_names
+    from rllock.search import guide_checkpoint as guides
     from rllock.search import pretrained
 
     if args.ship is not None:
         if args.name is None:
             raise RLLockError("--ship needs --name, the name to ship the checkpoint under (e.g. cube4-k9)")
-        target = pretrained.ship(Path(args.ship), args.name)
+        if guides.is_guide_run(Path(args.ship)):
+            target = guides.ship_guide(Path(args.ship), args.name)
+        else:
+            target = pretrained.ship(Path(args.ship), args.name)
         size = sum(f.stat().st_size for f in target.rglob("*") if f.is_file())
         sys.stdout.write(f"shipped {args.name}: {target} ({size / 2**20:.1f} MiB)\n")
         return 0
     rows = [pretrained.describe(name) for name in shipped_names()]
+    guide_rows = [guides.describe_guide(name) for name in guides.shipped_guides()]
     if args.json:
-        sys.stdout.write(json.dumps(rows) + "\n")
+        sys.stdout.write(json.dumps(rows + [{"kind": "guide", **g} for g in guide_rows]) + "\n")
         return 0
     if not rows:
         sys.stdout.write("no shipped checkpoints\n")

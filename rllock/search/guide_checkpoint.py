@@ -2,14 +2,17 @@
 
 A guide run's log directory holds `checkpoints/<step>/` like a training run's: `state/` (orbax: the
 parameters, optimizer state, step and PRNG key) and `meta/metadata`, a JSON document of format
-`rllock-guide` with the run's config, its counters and the sessions that trained it. A shipped guide
-(`rllock/checkpoints/guide`) keeps the parameters only. Any other checkpoint, a missing one or a damaged
-one is a one-line error before any search.
+`rllock-guide` with the run's config, its counters and the sessions that trained it (command, commit,
+machine, date). A shipped guide (`rllock/checkpoints/guides/<name>`, `guide` being what `--guide` alone
+loads) keeps the parameters only, and names no path of the machine that made it. Any other checkpoint, a
+missing one or a damaged one is a one-line error before any search.
 """
 
 from __future__ import annotations
 
+import datetime
 import json
+import shutil
 from pathlib import Path
 
 import jax
@@ -17,12 +20,17 @@ import jax
 from rllock.config import GuideTrainConfig, from_json, to_json
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
-from rllock.files.orbax_io import restore_like
+from rllock.files.orbax_io import restore_like, write_state
+from rllock.files.provenance import portable, portable_command
 from rllock.search.guide import Guide, init_guide
+from rllock.search.pretrained import COMMIT_SUCCESS, commit_line
 
 FORMAT = "rllock-guide"
 VERSION = 1
 SHIPPED_GUIDE = "guide"  # what `--guide` alone loads
+GUIDES = (
+    ckpt.SHIPPED / "guides"
+)  # apart from the policies: `rllock pretrained` lists them in a table of their own
 
 
 def guide_metadata(config: GuideTrainConfig, step: int, counters: dict, sessions: list[dict]) -> dict:
@@ -54,8 +62,9 @@ def read_guide_metadata(step_dir: Path) -> dict:
 def load_guide(source: str | Path = SHIPPED_GUIDE) -> Guide:
     """The guide network in `source`: a `rllock train-guide` run's folder (its latest checkpoint), a step
     directory, or a shipped name (`guide`)."""
-    step_dir = ckpt.find_step_dir(source)
-    doc = read_guide_metadata(step_dir)
+    policy = not Path(source).exists() and str(source) in ckpt.shipped_names()
+    step_dir = ckpt.find_step_dir(source, shipped=ckpt.SHIPPED if policy else GUIDES)
+    doc = read_guide_metadata(step_dir)  # a shipped policy's name: the error says what it is
     try:
         config = from_json(GuideTrainConfig, doc["config"]).guide
     except (KeyError, TypeError, ValueError) as exc:
@@ -63,3 +72,65 @@ def load_guide(source: str | Path = SHIPPED_GUIDE) -> Guide:
     template = {"params": jax.eval_shape(lambda key: init_guide(config, key), jax.random.PRNGKey(0))}
     params = restore_like(step_dir, template, partial=True)["params"]
     return Guide(config, params, str(step_dir))
+
+
+def is_guide_run(source: Path) -> bool:
+    """Whether `source` (a run folder or step directory) holds a guide network's checkpoints."""
+    try:
+        read_guide_metadata(ckpt.find_step_dir(source))
+    except RLLockError:
+        return False
+    return True
+
+
+def shipped_guides() -> list[str]:
+    return ckpt.shipped_names(GUIDES)
+
+
+def describe_guide(name: str) -> dict:
+    """One line of `rllock pretrained`'s guide table: training and provenance."""
+    doc = read_guide_metadata(GUIDES / name)
+    sessions, counters = list(doc.get("sessions", [])), doc.get("counters", {})
+    return {
+        "name": name,
+        "window": doc["config"]["guide"]["window"],
+        "training_minutes": round(counters.get("seconds", 0.0) / 60, 1),
+        "searches": counters.get("searches", 0),
+        "learner_steps": doc["step"],
+        "commit": sessions[0]["commit"] if sessions else None,
+        "machine": sessions[0]["machine"] if sessions else None,
+        "date": sessions[0]["date"] if sessions else None,
+        "sessions": sessions,
+    }
+
+
+def ship_guide(source: Path, name: str, into: Path | None = None) -> Path:
+    """Copy the latest checkpoint of the guide run in `source` into the package as `name`: the
+    parameters and the metadata (paths made portable, a `shipped` record added)."""
+    if not ckpt.SHIPPED_NAME.match(name):
+        raise RLLockError(f"bad guide name {name!r}: use lower-case words like guide")
+    step_dir = ckpt.find_step_dir(source)
+    doc = read_guide_metadata(step_dir)
+    guide = load_guide(step_dir)
+    doc["config"]["logdir"] = portable(doc["config"]["logdir"])
+    doc["sessions"] = [
+        {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
+        for s in doc.get("sessions", [])
+    ]
+    doc["shipped"] = {
+        "name": name,
+        "from": portable(step_dir),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    into = GUIDES if into is None else into
+    staging, target = into / f".{name}.partial", into / name
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    write_state(staging / "state", {"params": guide.params})
+    (staging / "meta").mkdir()
+    (staging / "meta" / "metadata").write_text(json.dumps(doc))
+    # orbax wrote the absolute staging path in it; the file must stay, its words are for people.
+    (staging / "state" / COMMIT_SUCCESS).write_text(commit_line(portable((target / "state").absolute(), 3)))
+    shutil.rmtree(target, ignore_errors=True)
+    staging.rename(target)
+    return target

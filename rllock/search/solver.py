@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,7 +33,9 @@ from rllock.core.env import (
     tightest_subset,
 )
 from rllock.core.feasibility import check_feasible
-from rllock.search.guide import Guide
+
+if TYPE_CHECKING:  # the guide brings JAX; the plain search starts without it
+    from rllock.search.guide import Guide
 
 # How often a running search reports its progress, in seconds.
 PROGRESS_EVERY = 0.5
@@ -74,6 +77,9 @@ class SearchConfig:
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
+    guide_count_weight: float = 0.0
+    """With a guide network: the weight of the lookahead's count of accepted continuations (as a share
+    of the node's most) beside the network's value when children are ordered."""
     prune_below: float = 0.02
     """With a guide network: children whose value is below this are dropped (the network judges that
     the search below them places almost none of the pieces left), except the best of a node's."""
@@ -140,6 +146,63 @@ Record = Callable[[State, float], None]
 the search below it placed (1: it reached an assembly; 0: a dead end). What a guide network learns."""
 
 
+@dataclass
+class _Expander:
+    """Expands the nodes of one restart: samples a node's children (counting expansions, reporting
+    progress) and orders them, under lookahead and with a guide when there is one."""
+
+    task: Task
+    rng: np.random.Generator
+    config: SearchConfig
+    target: int
+    stats: SearchStats
+    report: Callable[[SearchStats], None] | None
+    guide: Guide | None
+    record: Record | None
+    expansions: int = 0
+
+    def sample(self, state: State) -> tuple[np.ndarray, int]:
+        """(up to `children` distinct accepted chunks, how many were accepted)."""
+        config, stats, task = self.config, self.stats, self.task
+        deep = config.deep(task)
+        self.expansions += 1
+        stats.expansions += 1
+        stats.reached(state)
+        now = time.monotonic()
+        if self.report is not None and now - stats.reported >= PROGRESS_EVERY:
+            stats.reported = now
+            self.report(stats)
+        seed = int(self.rng.integers(1 << 31))
+        accepted = sample_accepted(
+            task,
+            state,
+            seed=seed,
+            num_samples=config.samples_per_node,
+            closed_share=config.share_for(task),
+            thin=int(deep),
+            wide_seeds=deep,
+        )
+        if deep and len(accepted):
+            return tightest_subset(task, state, accepted, config.children, seed), len(accepted)
+        return distinct_subset(accepted, config.children, seed), len(accepted)
+
+    def children_of(self, state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
+        """Children in pop order (best last); their own candidates are attached under lookahead."""
+        kids = [apply_chunk(state, c) for c in chunks]
+        if not self.config.lookahead or state.placed + 1 == self.target:
+            return _guided(self.task, [(k, None) for k in kids], [0] * len(kids), self.guide, self.config)
+        scored = []
+        for kid in kids:
+            grand, score = self.sample(kid)
+            if len(grand):
+                scored.append((score, kid, grand))
+            elif self.record is not None:
+                self.record(kid, 0.0)  # a dead end: nothing can be placed next
+        scored.sort(key=lambda t: t[0])
+        counts = [score for score, _, _ in scored]
+        return _guided(self.task, [(kid, grand) for _, kid, grand in scored], counts, self.guide, self.config)
+
+
 def _dfs(
     task: Task,
     rng: np.random.Generator,
@@ -159,55 +222,15 @@ def _dfs(
     PROGRESS_EVERY seconds. A `guide` orders the children by its values (all children of a node in one
     call) and drops the hopeless ones; `record` takes every state whose subtree the search finished, with
     its value target."""
-    expansions = 0
-    share, deep = config.share_for(task), config.deep(task)
-
-    def sample(state: State) -> tuple[np.ndarray, int]:
-        nonlocal expansions
-        expansions += 1
-        stats.expansions += 1
-        stats.reached(state)
-        now = time.monotonic()
-        if report is not None and now - stats.reported >= PROGRESS_EVERY:
-            stats.reported = now
-            report(stats)
-        seed = int(rng.integers(1 << 31))
-        accepted = sample_accepted(
-            task,
-            state,
-            seed=seed,
-            num_samples=config.samples_per_node,
-            closed_share=share,
-            thin=int(deep),
-            wide_seeds=deep,
-        )
-        if deep and len(accepted):
-            return tightest_subset(task, state, accepted, config.children, seed), len(accepted)
-        return distinct_subset(accepted, config.children, seed), len(accepted)
-
-    def children_of(state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
-        """Children in pop order (best last); their own candidates are attached under lookahead."""
-        kids = [apply_chunk(state, c) for c in chunks]
-        if not config.lookahead or state.placed + 1 == target:
-            return _guided(task, [(k, None) for k in kids], guide, config)
-        scored = []
-        for kid in kids:
-            grand, score = sample(kid)
-            if len(grand):
-                scored.append((score, kid, grand))
-            elif record is not None:
-                record(kid, 0.0)  # a dead end: nothing can be placed next
-        scored.sort(key=lambda t: t[0])
-        return _guided(task, [(kid, grand) for _, kid, grand in scored], guide, config)
-
+    nodes = _Expander(task, rng, config, target, stats, report, guide, record)
     root = initial_state(task)
-    stack = [children_of(root, sample(root)[0])]
+    stack = [nodes.children_of(root, nodes.sample(root)[0])]
     path = [[root, 0]]  # the state each stack level holds the children of, and the deepest below it
     while stack:
-        if expansions >= budget or time.monotonic() > deadline or stop():
+        if nodes.expansions >= budget or time.monotonic() > deadline or stop():
             while record is not None and path:
                 _leave(path, target, record)  # cut short: how far each went is a lower bound
-            return None, expansions
+            return None, nodes.expansions
         if not stack[-1]:
             stack.pop()
             _leave(path, target, record)
@@ -218,23 +241,30 @@ def _dfs(
                 level[1] = target
             while path:
                 _leave(path, target, record)
-            return child, expansions
+            return child, nodes.expansions
         if grand is None:
-            grand = sample(child)[0]
-        stack.append(children_of(child, grand))
+            grand = nodes.sample(child)[0]
+        stack.append(nodes.children_of(child, grand))
         path.append([child, child.placed])
-    return None, expansions
+    return None, nodes.expansions
 
 
 def _guided(
-    task: Task, children: list[tuple[State, np.ndarray | None]], guide: Guide | None, config: SearchConfig
+    task: Task,
+    children: list[tuple[State, np.ndarray | None]],
+    counts: list[int],
+    guide: Guide | None,
+    config: SearchConfig,
 ) -> list[tuple[State, np.ndarray | None]]:
-    """`children` in pop order: as they are without a guide; with one, by its values (best last, ties in
-    their order), without those valued below `config.prune_below`."""
+    """`children` in pop order: as they are without a guide; with one, by its values plus
+    `config.guide_count_weight` times their share of the most accepted continuations (`counts`, from the
+    lookahead), best last, without those valued below `config.prune_below` (never all)."""
     if guide is None or not children:
         return children
     values = guide.values(task, [kid for kid, _ in children])
-    order = sorted(range(len(children)), key=lambda i: (values[i], i))
+    most = max(max(counts), 1)
+    score = [values[i] + config.guide_count_weight * counts[i] / most for i in range(len(children))]
+    order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
     return kept or [children[order[-1]]]  # never all: the best child is tried whatever its value
 
