@@ -249,7 +249,7 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     small = ["--search-seconds", "2", "--batch-size", "16", "--buffer-capacity", "4000", "--actors", "1",
              "--max-voxels", "300", "--max-pieces", "20", "--guide-features", "4,8", "--guide-hidden", "16",
              "--publish-every", "5", "--checkpoint-minutes", "0.2"]  # fmt: skip
-    code, out, err = run_cli("train-guide", "--minutes", "0.8", "--logdir", str(run), *small, timeout=240)
+    code, out, err = run_cli("train-guide", "--minutes", "0.6", "--logdir", str(run), *small, timeout=240)
     assert code == 0, err
     steps = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     assert steps and steps[-1] > 0 and (run / "replay.npz").exists()
@@ -259,7 +259,7 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
-    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.4", timeout=240)
+    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.25", timeout=240)
     assert code == 0, err
     assert "resuming" in err and "replay buffer restored" in err
     again = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())

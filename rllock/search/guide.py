@@ -28,6 +28,7 @@ from rllock.core.env import State, Task
 
 CHANNELS = 3  # remaining volume, placed pieces, outside the shape
 GLOBALS = 14
+PAD = 8  # network calls take a multiple of this many states
 
 
 class GuideNet(nn.Module):
@@ -158,7 +159,13 @@ class Guide:
     source: str  # a checkpoint's path or name, or "untrained (seed N)"
 
     def values(self, task: Task, states: list[State]) -> np.ndarray:
+        """Values of `states`, in one network call padded to a multiple of `PAD` states: a node has
+        1 to 8 children, and each new batch shape would compile the network again."""
         if not states:
             return np.zeros(0, np.float32)
         e = encode(task, states, self.config.window)
-        return np.asarray(guide_values(self.params, e.window, e.features, config=self.config))
+        rows = -(-len(states) // PAD) * PAD
+        window = np.zeros((rows, *e.window.shape[1:]), np.int8)
+        features = np.zeros((rows, GLOBALS), np.float32)
+        window[: len(states)], features[: len(states)] = e.window, e.features
+        return np.asarray(guide_values(self.params, window, features, config=self.config))[: len(states)]

@@ -77,7 +77,7 @@ class SearchConfig:
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
-    guide_count_weight: float = 0.0
+    guide_count_weight: float = 0.5
     """With a guide network: the weight of the lookahead's count of accepted continuations (as a share
     of the node's most) beside the network's value when children are ordered."""
     prune_below: float = 0.02
