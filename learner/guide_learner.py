@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from learner.learner import AdamState
 from rllock.config import GuideConfig
 from rllock.errors import RLLockError
 from rllock.process import peak_rss_mb
@@ -87,16 +88,12 @@ def guide_step(params, opt_state, batch, *, config: GuideConfig, optimizer: opta
     return optax.apply_updates(params, updates), opt_state, loss
 
 
-class GuideLearner:
-    """The guide network's parameters, optimizer state, step and PRNG key (what a checkpoint holds)."""
+class GuideLearner(AdamState):
+    """The guide network's learner: its parameters, optimizer state, step and PRNG key (`AdamState`)."""
 
     def __init__(self, config: GuideConfig, learning_rate: float, key: jax.Array):
+        super().__init__(partial(init_guide, config), learning_rate, key)
         self.config = config
-        self.optimizer = optax.adam(learning_rate)
-        init_key, self.key = jax.random.split(key)
-        self.params = init_guide(config, init_key)
-        self.opt_state = self.optimizer.init(self.params)
-        self.step = 0
 
     def update(self, sample: dict[str, np.ndarray]) -> float:
         batch = (
@@ -109,20 +106,3 @@ class GuideLearner:
         )
         self.step += 1
         return float(loss)
-
-    def next_seed(self) -> int:
-        self.key, sub = jax.random.split(self.key)
-        return int(jax.random.randint(sub, (), 0, np.iinfo(np.int32).max))
-
-    def state(self) -> dict:
-        return {
-            "params": self.params,
-            "opt_state": self.opt_state,
-            "step": np.asarray(self.step, dtype=np.int64),
-            "key": np.asarray(self.key),
-        }
-
-    def load_state(self, state: dict) -> None:
-        self.params, self.opt_state = state["params"], state["opt_state"]
-        self.step = int(state["step"])
-        self.key = jnp.asarray(state["key"], jnp.uint32)

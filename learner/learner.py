@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import jax
@@ -47,53 +48,17 @@ def ppo_update_step(
     return optax.apply_updates(params, updates), opt_state, policy, value_loss
 
 
-class Learner:
-    def __init__(
-        self,
-        workload: Workload,
-        net_config: NetConfig,
-        config: LearnerConfig,
-        key: jax.Array,
-        method: str = "rl-lock",
-    ):
-        """`key`: a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so checkpoints store it as is.
-        `method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error.
-        `workload`: what the run plays, which says how its stored states become network inputs."""
-        self.workload = workload
-        self.ppo = method == "ppo"
-        self.net = PolicyValueNet(net_config)
-        self.net_config = net_config
-        self.config = config
-        self.optimizer = optax.adam(config.learning_rate)
+class AdamState:
+    """Parameters, Adam's state, the learner step and the PRNG key: everything a resume needs, and the
+    seeds of the replay samples. `key` is a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so
+    that checkpoints store it as is; `init` makes the parameters from a key split off it."""
+
+    def __init__(self, init: Callable[[jax.Array], dict], learning_rate: float, key: jax.Array):
+        self.optimizer = optax.adam(learning_rate)
         init_key, self.key = jax.random.split(key)
-        self.params = init_params(net_config, init_key)
+        self.params = init(init_key)
         self.opt_state = self.optimizer.init(self.params)
         self.step = 0
-
-    def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
-        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z; for PPO
-        pi, actions, z). With a `seed` (and symmetries on), each transition is first mapped through a
-        random symmetry."""
-        seed = seed if self.config.symmetries else None
-        planes, chunks, sample = self.workload.inputs(sample, self.net_config, seed)
-        m = sample["chunks"].shape[1]
-        valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
-        if self.ppo:
-            return planes, chunks, valid, sample["pi"], sample["actions"].astype(np.int32), sample["z"]
-        return planes, chunks, valid, sample["pi"], sample["z"]
-
-    def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
-        batch = self.prepare(sample, self.next_seed())
-        if self.ppo:
-            self.params, self.opt_state, policy, value_loss = ppo_update_step(
-                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer, config=self.config
-            )
-        else:
-            self.params, self.opt_state, policy, value_loss = update_step(
-                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer
-            )
-        self.step += 1
-        return {"policy": float(policy), "value": float(value_loss)}
 
     def start_from(self, params) -> None:
         """Fine-tuning: these parameters (another run's network of the same architecture), with a fresh
@@ -121,3 +86,47 @@ class Learner:
         self.opt_state = state["opt_state"]
         self.step = int(state["step"])
         self.key = jnp.asarray(state["key"], jnp.uint32)
+
+
+class Learner(AdamState):
+    def __init__(
+        self,
+        workload: Workload,
+        net_config: NetConfig,
+        config: LearnerConfig,
+        key: jax.Array,
+        method: str = "rl-lock",
+    ):
+        """`method`: ppo learns with PPO's loss, the search methods with cross-entropy and value error.
+        `workload`: what the run plays, which says how its stored states become network inputs."""
+        super().__init__(partial(init_params, net_config), config.learning_rate, key)
+        self.workload = workload
+        self.ppo = method == "ppo"
+        self.net = PolicyValueNet(net_config)
+        self.net_config = net_config
+        self.config = config
+
+    def prepare(self, sample: dict[str, np.ndarray], seed: int | None = None) -> tuple:
+        """Replay-buffer arrays -> network inputs (planes, candidate canvas indices, mask, pi, z; for PPO
+        pi, actions, z). With a `seed` (and symmetries on), each transition is first mapped through a
+        random symmetry."""
+        seed = seed if self.config.symmetries else None
+        planes, chunks, sample = self.workload.inputs(sample, self.net_config, seed)
+        m = sample["chunks"].shape[1]
+        valid = np.arange(m)[None, :] < sample["num_valid"][:, None]
+        if self.ppo:
+            return planes, chunks, valid, sample["pi"], sample["actions"].astype(np.int32), sample["z"]
+        return planes, chunks, valid, sample["pi"], sample["z"]
+
+    def update(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
+        batch = self.prepare(sample, self.next_seed())
+        if self.ppo:
+            self.params, self.opt_state, policy, value_loss = ppo_update_step(
+                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer, config=self.config
+            )
+        else:
+            self.params, self.opt_state, policy, value_loss = update_step(
+                self.params, self.opt_state, batch, net=self.net, optimizer=self.optimizer
+            )
+        self.step += 1
+        return {"policy": float(policy), "value": float(value_loss)}
