@@ -124,10 +124,11 @@ class _GuideRun:
         self.manager = orbax_io.manager(self.logdir / "checkpoints", keep=3)
         self.buffer = _start_buffer(config)
         snapshot = self.logdir / "replay.npz"
+        self.available = 0  # states in the buffer, as the last search's push (or the restore) reported
         if resume and snapshot.exists():
-            log.info("replay buffer restored: %d states", ray.get(self.buffer.restore.remote(str(snapshot))))
+            self.available = ray.get(self.buffer.restore.remote(str(snapshot)))
+            log.info("replay buffer restored: %d states", self.available)
         self.interrupted, self.stop_signal = False, None
-        self.available = 0  # states in the buffer, as the last search's push reported
 
     def _restore(self) -> None:
         def restore(step_dir: Path) -> dict:

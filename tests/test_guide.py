@@ -109,7 +109,7 @@ def test_the_search_records_value_targets_it_can_stand_behind():
 
 
 def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():
-    task = make_task("cube5", 13)
+    task = make_task("cube4", 7)
     # A guide that judges everything hopeless: pruning must still keep each node's best child.
     params = dict(jax.tree.map(np.asarray, _untrained().params))
     params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, -10.0)}
@@ -143,9 +143,9 @@ def test_the_guide_learner_fits_the_buffers_targets():
     learner = GuideLearner(CONFIG, 3e-3, jax.random.PRNGKey(0))
     batch = buffer.sample(64, 0)
     first = learner.update(batch)
-    for _ in range(150):
+    for _ in range(60):
         last = learner.update(batch)
-    assert last < 0.5 * first
+    assert last < 0.7 * first
 
 
 def _save_guide(folder, learner: GuideLearner, config: GuideTrainConfig):
@@ -259,8 +259,9 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
-    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.25", timeout=240)
+    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.3", timeout=240)
     assert code == 0, err
-    assert "resuming" in err and "replay buffer restored" in err
+    assert f"resuming {run} at learner step {steps[-1]}" in err and "replay buffer restored" in err
     again = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
-    assert again[-1] > steps[-1]
+    # Learning goes on from the restored buffer, up to the replay ratio's cap on what was searched.
+    assert again[-1] >= steps[-1] and again != steps
