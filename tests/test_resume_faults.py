@@ -103,7 +103,12 @@ def test_a_killed_actor_is_restarted_and_ctrl_c_then_saves_a_checkpoint_and_says
 
     try:
         _wait_for(lambda: actor_processes() and _steps(logdir), timeout=240, proc=proc, lines=lines)
-        actor_processes()[0].kill()
+        # Every process of the run that names the actor: the first of them was not always the actor's
+        # worker (a run then went on untouched and the test timed out on the restart line).
+        killed = actor_processes()
+        for p in killed:
+            p.kill()
+        lines.append(f"[test] killed {[p.pid for p in killed]}\n")
         # The pool notices the new process when it returns its first batch; then Ctrl-C stops the run.
         _wait_for(lambda: any(RESTARTED.search(line) for line in lines), timeout=240, proc=proc, lines=lines)
         before = _steps(logdir)[-1]
