@@ -360,7 +360,9 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
 
     cells = parse_cells(args.cells)
     arms = choices(args.arms, "--arms", ("solver", "guided", "untrained"))
-    seeds = [int(s) for s in items(args.seeds, "--seeds") if s.isdigit()] or [0]
+    seeds = [int(s) for s in items(args.seeds, "--seeds") if s.isdigit()]
+    if len(seeds) != len(items(args.seeds, "--seeds")):
+        raise RLLockError(f"--seeds takes a comma-separated list of seeds (0, 1, ...), got {args.seeds!r}")
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit)
     if args.json:

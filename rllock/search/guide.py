@@ -74,8 +74,9 @@ def encode(task: Task, states: list[State], window: int) -> Encoded:
     windows = np.zeros((len(states), window, window, window, CHANNELS), np.int8)
     features = np.zeros((len(states), GLOBALS), np.float32)
     for i, state in enumerate(states):
-        windows[i] = _window(task, state, window)
-        features[i] = _features(task, state, 2 * window)
+        centre = np.round(_centre(task, state)).astype(np.int64)  # once: both boxes are around it
+        windows[i] = _window(task, state, centre, window)
+        features[i] = _features(task, state, centre, 2 * window)
     return Encoded(windows, features)
 
 
@@ -104,18 +105,18 @@ def _remaining_box(task: Task, state: State, lo: np.ndarray, side: int) -> np.nd
     return out
 
 
-def _window(task: Task, state: State, w: int) -> np.ndarray:
-    box = _remaining_box(task, state, np.round(_centre(task, state)).astype(np.int64) - w // 2, w)
+def _window(task: Task, state: State, centre: np.ndarray, w: int) -> np.ndarray:
+    box = _remaining_box(task, state, centre - w // 2, w)
     return np.stack([box == 1, box == 0, box == -1], axis=-1).astype(np.int8)
 
 
-def _features(task: Task, state: State, side: int) -> np.ndarray:
+def _features(task: Task, state: State, centre: np.ndarray, side: int) -> np.ndarray:
     """GLOBALS features: the task and how much is left (O(1)), and R's shape in the box of `side`^3
     around the window's centre (its thin, surface and interior voxels, its extent, its share)."""
     n, k, size = task.piece_size, task.pieces, task.size
     left = k - 1 - state.placed
     r = size - n * state.placed  # P1..Pi hold n voxels each
-    lo = np.round(_centre(task, state)).astype(np.int64) - side // 2
+    lo = centre - side // 2
     box = _remaining_box(task, state, lo - 1, side + 2) == 1
     inner = box[1:-1, 1:-1, 1:-1]
     degree = (
