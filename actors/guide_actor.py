@@ -48,8 +48,8 @@ class Recording:
         self.features: list[np.ndarray] = []
         self.targets: list[float] = []
 
-    def __call__(self, state: State, target: float) -> None:
-        e = encode(self.task, [state], self.window)
+    def __call__(self, state: State, target: float, share: float) -> None:
+        e = encode(self.task, [state], [share], self.window)
         self.windows.append(e.window[0])
         self.features.append(e.features[0])
         self.targets.append(target)

@@ -46,11 +46,12 @@ def main() -> None:
     rows = []
     for shape, pieces in SHAPES:
         task, states = children(shape, pieces)
-        guide.values(task, states)  # compile
+        shares = [1.0] * len(states)
+        guide.values(task, states, shares)  # compile
         encode_s, network_s = [], []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            e = encode(task, states, guide.config.window)
+            e = encode(task, states, shares, guide.config.window)
             t1 = time.perf_counter()
             np.asarray(guide_values(guide.params, e.window, e.features, config=guide.config))
             network_s.append(time.perf_counter() - t1)

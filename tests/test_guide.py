@@ -83,7 +83,7 @@ def test_the_window_matches_a_cell_by_cell_reference_and_features_are_bounded():
                 break
             state = apply_chunk(state, chunks[0])
             states.append(state)
-        encoded = encode(task, states, 8)
+        encoded = encode(task, states, [1.0] * len(states), 8)
         assert encoded.window.shape == (len(states), 8, 8, 8, CHANNELS)
         assert encoded.features.shape == (len(states), GLOBALS)
         for i, s in enumerate(states):
@@ -98,7 +98,7 @@ def test_the_search_records_value_targets_it_can_stand_behind():
     dead ends are 0, and a state's target never exceeds what its subtree could place."""
     task = make_task("cube4", 7)
     recorded = []
-    found = next(search(task, seed=0, time_limit=60, record=lambda s, v: recorded.append((s, v))))
+    found = next(search(task, seed=0, time_limit=60, record=lambda s, v, share: recorded.append((s, v))))
     assert verify_labels(found.labels, task.removal).valid
     targets = np.array([v for _, v in recorded])
     assert ((targets >= 0) & (targets <= 1)).all()
@@ -114,7 +114,7 @@ def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare(
     params = dict(jax.tree.map(np.asarray, _untrained().params))
     params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, -10.0)}
     hopeless = Guide(CONFIG, params, "hopeless")
-    assert (hopeless.values(task, [initial_state(task)]) < 0.02).all()
+    assert (hopeless.values(task, [initial_state(task)], [1.0]) < 0.02).all()
     for guide in (_untrained(), hopeless):
         found = solve(task, count=1, time_limit=120, seed=0, guide=guide)
         assert len(found) == 1 and verify_labels(found[0], task.removal).valid

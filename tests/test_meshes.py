@@ -428,3 +428,18 @@ def test_bad_sizes_are_clear_errors():
         piece_mesh(cells, voxel_size=0)
     with pytest.raises(RLLockError, match="gap"):
         piece_mesh(cells, voxel_size=10, gap=10)
+
+
+def test_a_textured_obj_split_along_its_seams_is_merged_by_position(tmp_path):
+    """Textured models repeat a vertex wherever its texture coordinates change (each face of this box has
+    its own four), so by index the surface is open along every seam; by position it is closed."""
+    box = trimesh.creation.box(extents=[4, 2, 2])
+    lines, faces = [], []
+    for f, (a, b, c) in enumerate(box.faces):
+        for i, v in enumerate((a, b, c)):
+            lines.append("v {} {} {}".format(*box.vertices[v]))
+            lines.append(f"vt {i / 2} {f / len(box.faces)}")
+        faces.append(f"f {3 * f + 1}/{3 * f + 1} {3 * f + 2}/{3 * f + 2} {3 * f + 3}/{3 * f + 3}")
+    (tmp_path / "textured.obj").write_text("\n".join(lines + faces) + "\n")
+    grid = load_shape(str(tmp_path / "textured.obj"), resolution=4)
+    assert grid.shape == (4, 2, 2) and grid.all()

@@ -33,6 +33,7 @@ from rllock.files.assembly import read_assembly, write_assembly
 from rllock.files.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
 
 log = logging.getLogger(__name__)
+PROGRESS_LOG_EVERY = 5.0  # seconds between progress lines in a log (stderr not a terminal)
 
 
 def verified(labels: np.ndarray, metadata: dict, source: str) -> Verdict:
@@ -122,11 +123,25 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
     config = SearchConfig()
     picture = picture_writer()
     desc = f"solve {task.shape_name} K={task.pieces}"
+    began = time.monotonic()
+    logged = [began]  # when the last progress line was logged
     with tqdm(total=args.count, desc=desc, unit="assembly", disable=None) as bar:
 
         def report(s) -> None:
-            best = f"best {s.placed} of {task.pieces - 1} placed"
-            bar.set_postfix_str(f"{s.expansions:,} nodes, {s.restarts} restarts, {best}")
+            bar.set_postfix_str(progress(s, task.pieces))
+            now = time.monotonic()
+            # No terminal, no bar (tqdm disables itself): a log line every few seconds instead, so that a
+            # long search in a log file is told apart from a hang.
+            if bar.disable and now - logged[0] >= PROGRESS_LOG_EVERY:
+                logged[0] = now
+                elapsed = now - began
+                log.info(
+                    "%s: %s, %.0f nodes/s, %.0f s",
+                    desc,
+                    progress(s, task.pieces),
+                    s.expansions / elapsed,
+                    elapsed,
+                )
 
         limit = args.time_limit
         found = search(
@@ -160,6 +175,13 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
             bar.update(1)
             if len(written) >= args.count:
                 break
+
+
+def progress(stats, pieces: int) -> str:
+    """A search's progress in words: nodes, restarts and the most pieces placed."""
+    return (
+        f"{stats.expansions:,} nodes, {stats.restarts} restarts, best {stats.placed} of {pieces - 1} placed"
+    )
 
 
 def _nothing_found(task, args: argparse.Namespace, stats) -> str:

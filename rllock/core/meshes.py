@@ -158,6 +158,10 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
         raise RLLockError(f"cannot read mesh {path}: {exc}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise RLLockError(f"{path} holds no triangle mesh")
+    # Only the geometry: textured and smooth-shaded models repeat a vertex wherever its texture
+    # coordinates or normal change, which leaves the surface open along every seam until the copies are
+    # merged by position (a mesh without texture or normals merges them so on load).
+    mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
     if mesh.is_watertight:
         return mesh
     capped, holes = _capped(mesh)

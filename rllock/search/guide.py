@@ -7,7 +7,9 @@ reaches an assembly), from what it sees of the state:
 - a window of W^3 voxels centred on the piece just placed, where the next piece starts (`WINDOW`
   channels: the remaining volume R, the placed pieces, outside the shape);
 - features (`GLOBALS`): how much is left of the shape and of the pieces, the piece size, N and K, and
-  R's shape in a (2W)^3 box around the window: its thin, surface and interior voxels, its extent.
+  R's shape in a (2W)^3 box around the window: its thin, surface and interior voxels, its extent; and
+  the state's lookahead share (its accepted continuations over the most among its siblings), the
+  solver's own judgement, which the network learns to correct.
 Every input is read from boxes of a fixed size and a few counts, so one evaluation (features and
 network) costs the same at N = 500 and N = 40,000, and one set of weights serves every shape and every
 K (docs/benchmarks.md measures it). All children of a node are evaluated in one call.
@@ -27,7 +29,7 @@ from rllock.config import GuideConfig
 from rllock.core.env import State, Task
 
 CHANNELS = 3  # remaining volume, placed pieces, outside the shape
-GLOBALS = 14
+GLOBALS = 15
 PAD = 8  # network calls take a multiple of this many states
 
 
@@ -68,15 +70,15 @@ class Encoded:
     features: np.ndarray  # float32 [B, GLOBALS]
 
 
-def encode(task: Task, states: list[State], window: int) -> Encoded:
-    """The guide's inputs for `states` of `task` (module docstring); each state's last placed piece is
-    the window's centre (the root, with none: the shape's centre)."""
+def encode(task: Task, states: list[State], shares: list[float], window: int) -> Encoded:
+    """The guide's inputs for `states` of `task` with their lookahead shares (module docstring); each
+    state's last placed piece is the window's centre (the root, with none: the shape's centre)."""
     windows = np.zeros((len(states), window, window, window, CHANNELS), np.int8)
     features = np.zeros((len(states), GLOBALS), np.float32)
     for i, state in enumerate(states):
         centre = np.round(_centre(task, state)).astype(np.int64)  # once: both boxes are around it
         windows[i] = _window(task, state, centre, window)
-        features[i] = _features(task, state, centre, 2 * window)
+        features[i] = _features(task, state, centre, 2 * window, shares[i])
     return Encoded(windows, features)
 
 
@@ -110,7 +112,7 @@ def _window(task: Task, state: State, centre: np.ndarray, w: int) -> np.ndarray:
     return np.stack([box == 1, box == 0, box == -1], axis=-1).astype(np.int8)
 
 
-def _features(task: Task, state: State, centre: np.ndarray, side: int) -> np.ndarray:
+def _features(task: Task, state: State, centre: np.ndarray, side: int, share: float) -> np.ndarray:
     """GLOBALS features: the task and how much is left (O(1)), and R's shape in the box of `side`^3
     around the window's centre (its thin, surface and interior voxels, its extent, its share)."""
     n, k, size = task.piece_size, task.pieces, task.size
@@ -146,6 +148,7 @@ def _features(task: Task, state: State, centre: np.ndarray, side: int) -> np.nda
             there / side**3,
             r / max(left, 1) / max(n, 1) / 2,  # voxels left per piece left, against n
             float(state.placed > 0),
+            share,
         ],
         np.float64,
     )
@@ -159,12 +162,13 @@ class Guide:
     params: dict
     source: str  # a checkpoint's path or name, or "untrained (seed N)"
 
-    def values(self, task: Task, states: list[State]) -> np.ndarray:
-        """Values of `states`, in one network call padded to a multiple of `PAD` states: a node has
-        1 to 8 children, and each new batch shape would compile the network again."""
+    def values(self, task: Task, states: list[State], shares: list[float]) -> np.ndarray:
+        """Values of `states` with their lookahead shares (`solver.Child`), in one network call padded
+        to a multiple of `PAD` states: a node has 1 to 8 children, and each new batch shape would
+        compile the network again."""
         if not states:
             return np.zeros(0, np.float32)
-        e = encode(task, states, self.config.window)
+        e = encode(task, states, shares, self.config.window)
         rows = -(-len(states) // PAD) * PAD
         window = np.zeros((rows, *e.window.shape[1:]), np.int8)
         features = np.zeros((rows, GLOBALS), np.float32)

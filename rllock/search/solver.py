@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -141,9 +141,20 @@ def _never() -> bool:
     return False
 
 
-Record = Callable[[State, float], None]
-"""Takes a state the search left and its value target: the share of the pieces left at that state that
-the search below it placed (1: it reached an assembly; 0: a dead end). What a guide network learns."""
+Record = Callable[[State, float, float], None]
+"""Takes a state the search left, its value target (the share of the pieces left at that state that the
+search below it placed; 1: it reached an assembly, 0: nothing below it) and its lookahead share (its
+accepted continuations as a share of its siblings' most). What a guide network learns from."""
+
+
+class Child(NamedTuple):
+    """A node's child as the search keeps it: the state, its own candidate chunks when the lookahead
+    sampled them, and its lookahead share (its accepted continuations over the most among its
+    siblings; 0 without lookahead)."""
+
+    state: State
+    grand: np.ndarray | None
+    share: float
 
 
 @dataclass
@@ -186,21 +197,21 @@ class _Expander:
             return tightest_subset(task, state, accepted, config.children, seed), len(accepted)
         return distinct_subset(accepted, config.children, seed), len(accepted)
 
-    def children_of(self, state: State, chunks: np.ndarray) -> list[tuple[State, np.ndarray | None]]:
-        """Children in pop order (best last); their own candidates are attached under lookahead."""
+    def children_of(self, state: State, chunks: np.ndarray) -> list[Child]:
+        """Children in pop order (best last); under lookahead their own candidates are attached and
+        those with none dropped (the guide is never asked about them, so they are not recorded)."""
         kids = [apply_chunk(state, c) for c in chunks]
         if not self.config.lookahead or state.placed + 1 == self.target:
-            return _guided(self.task, [(k, None) for k in kids], [0] * len(kids), self.guide, self.config)
+            return _guided(self.task, [Child(k, None, 0.0) for k in kids], self.guide, self.config)
         scored = []
         for kid in kids:
-            grand, score = self.sample(kid)
+            grand, count = self.sample(kid)
             if len(grand):
-                scored.append((score, kid, grand))
-            elif self.record is not None:
-                self.record(kid, 0.0)  # a dead end: nothing can be placed next
+                scored.append((count, kid, grand))
         scored.sort(key=lambda t: t[0])
-        counts = [score for score, _, _ in scored]
-        return _guided(self.task, [(kid, grand) for _, kid, grand in scored], counts, self.guide, self.config)
+        most = max((count for count, _, _ in scored), default=1)
+        children = [Child(kid, grand, count / most) for count, kid, grand in scored]
+        return _guided(self.task, children, self.guide, self.config)
 
 
 def _dfs(
@@ -215,17 +226,19 @@ def _dfs(
     report: Callable[[SearchStats], None] | None = None,
     guide: Guide | None = None,
     record: Record | None = None,
+    start: State | None = None,
 ):
-    """One restart: DFS from the root for at most `budget` expansions until a state with `target`
-    placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
+    """One restart: DFS from the root (or `start`) for at most `budget` expansions until a state with
+    `target` placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
     PROGRESS_EVERY seconds. A `guide` orders the children by its values (all children of a node in one
     call) and drops the hopeless ones; `record` takes every state whose subtree the search finished, with
     its value target."""
     nodes = _Expander(task, rng, config, target, stats, report, guide, record)
-    root = initial_state(task)
+    root = initial_state(task) if start is None else start
     stack = [nodes.children_of(root, nodes.sample(root)[0])]
-    path = [[root, 0]]  # the state each stack level holds the children of, and the deepest below it
+    # The state each stack level holds the children of, the deepest below it, its lookahead share.
+    path = [[root, root.placed, 1.0]]
     while stack:
         if nodes.expansions >= budget or time.monotonic() > deadline or stop():
             while record is not None and path:
@@ -235,7 +248,7 @@ def _dfs(
             stack.pop()
             _leave(path, target, record)
             continue
-        child, grand = stack[-1].pop()
+        child, grand, share = stack[-1].pop()
         if child.placed == target:
             for level in path:
                 level[1] = target
@@ -245,25 +258,18 @@ def _dfs(
         if grand is None:
             grand = nodes.sample(child)[0]
         stack.append(nodes.children_of(child, grand))
-        path.append([child, child.placed])
+        path.append([child, child.placed, share])
     return None, nodes.expansions
 
 
-def _guided(
-    task: Task,
-    children: list[tuple[State, np.ndarray | None]],
-    counts: list[int],
-    guide: Guide | None,
-    config: SearchConfig,
-) -> list[tuple[State, np.ndarray | None]]:
+def _guided(task: Task, children: list[Child], guide: Guide | None, config: SearchConfig) -> list[Child]:
     """`children` in pop order: as they are without a guide; with one, by its values plus
-    `config.guide_count_weight` times their share of the most accepted continuations (`counts`, from the
-    lookahead), best last, without those valued below `config.prune_below` (never all)."""
+    `config.guide_count_weight` times their lookahead share, best last, without those valued below
+    `config.prune_below` (never all)."""
     if guide is None or not children:
         return children
-    values = guide.values(task, [kid for kid, _ in children])
-    most = max(max(counts), 1)
-    score = [values[i] + config.guide_count_weight * counts[i] / most for i in range(len(children))]
+    values = guide.values(task, [c.state for c in children], [c.share for c in children])
+    score = [values[i] + config.guide_count_weight * c.share for i, c in enumerate(children)]
     order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
     return kept or [children[order[-1]]]  # never all: the best child is tried whatever its value
@@ -272,11 +278,11 @@ def _guided(
 def _leave(path: list[list], target: int, record: Record | None) -> None:
     """The search is done with the subtree of `path`'s last state: record it, and tell its parent how
     deep it went."""
-    state, deepest = path.pop()
+    state, deepest, share = path.pop()
     if path:
         path[-1][1] = max(path[-1][1], deepest)
     if record is not None and state.placed < target:
-        record(state, (deepest - state.placed) / (target - state.placed))
+        record(state, (deepest - state.placed) / (target - state.placed), share)
 
 
 def search(
@@ -345,6 +351,26 @@ def reach_depth(
         if state is not None:
             return state
     return None
+
+
+def complete_from(
+    task: Task, state: State, *, seed: int, expansions: int, config: SearchConfig = SearchConfig()
+) -> bool:
+    """Whether the search restarted from `state` (Luby budgets, `expansions` node expansions in all)
+    reaches an assembly: a rollout that judges the remainder `state` leaves."""
+    rng = np.random.default_rng(seed)
+    target = task.pieces - 1
+    if state.placed == target:
+        return True
+    used, restart = 0, 0
+    while used < expansions:
+        restart += 1
+        budget = min(config.restart_unit(task, target - state.placed) * luby(restart), expansions - used)
+        found, spent = _dfs(task, rng, config, budget, float("inf"), target, SearchStats(), start=state)
+        if found is not None:
+            return True
+        used += spent
+    return False
 
 
 def solve(

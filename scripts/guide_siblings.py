@@ -1,0 +1,183 @@
+"""Can a guide network judge a child better than the solver's own lookahead count? An offline check.
+
+`collect OUT.npz --tasks N --seconds S --seed X`: plain searches (no guide) on N curriculum tasks, S
+seconds each, recording every finished state encoded as the guide sees it, with its value target, its
+lookahead share and its sibling group (the task and the parent state).
+`fit A.npz [B.npz ...] --minutes M`: trains the guide network on the tasks whose index is not a multiple
+of 5 and, on the others (held out), counts sibling pairs with different targets ordered rightly by the
+lookahead share, by the network's value, and by the blend the guided search uses (value + 0.5 share).
+"""
+
+import argparse
+import hashlib
+import logging
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from learner.guide_learner import guide_step
+from rllock.config import GuideConfig, GuideTrainConfig
+from rllock.core.env import apply_chunk, distinct_subset, sample_accepted
+from rllock.search.curriculum import draw_task
+from rllock.search.guide import encode, guide_values, init_guide
+from rllock.search.solver import SearchConfig, complete_from, reach_depth, search
+
+log = logging.getLogger("guide_siblings")
+
+
+def _append(rows: dict[str, list], **values) -> None:
+    for key, value in values.items():
+        rows[key].append(value)
+
+
+def collect(out: str, tasks: int, seconds: float, seed: int) -> None:
+    rows: dict[str, list] = {k: [] for k in ("window", "features", "target", "share", "group", "task")}
+    config, window = GuideTrainConfig(), GuideConfig().window
+    for i in range(tasks):
+        task = draw_task(np.random.default_rng([seed, i]), config)
+        task_id = seed * 10_000 + i
+
+        def record(state, target, share, task=task, task_id=task_id):
+            parent = np.where(state.labels == state.placed, 0, state.labels)
+            digest = hashlib.blake2b(parent.tobytes() + task_id.to_bytes(8, "little"), digest_size=8).digest()
+            e = encode(task, [state], [share], window)
+            _append(rows, window=e.window[0], features=e.features[0], target=target, share=share,
+                    group=int.from_bytes(digest, "little") >> 1, task=task_id)  # fmt: skip
+
+        before = len(rows["target"])
+        solved = next(search(task, seed=i, time_limit=seconds, record=record), None) is not None
+        log.info("%s K=%d %s: solved %s, %d states", task.shape_name, task.pieces, task.removal, solved,
+                 len(rows["target"]) - before)  # fmt: skip
+    np.savez_compressed(out, **{k: np.asarray(v) for k, v in rows.items()})
+
+
+def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: int) -> None:
+    """Sibling groups labelled by rollouts: a mid-episode state 4-16 pieces before the end, its children
+    as the solver makes them (lookahead share included), and for each child the share of
+    `rollouts_per` plain searches from it (`expansions` each) that reach an assembly."""
+    rows: dict[str, list] = {k: [] for k in ("window", "features", "target", "share", "group", "task")}
+    config, search_config, window = GuideTrainConfig(max_voxels=600, max_pieces=60), SearchConfig(), 8
+    for g in range(groups):
+        rng = np.random.default_rng([seed, g])
+        task = draw_task(rng, config)
+        if task.pieces < 8:
+            continue
+        left = int(rng.integers(4, min(16, task.pieces - 2) + 1))
+        state = reach_depth(task, task.pieces - 1 - left, seed=g, time_limit=5)
+        if state is None:
+            continue
+        chunks = distinct_subset(_accepted(task, state, rng, search_config), 8, g)
+        kids = [apply_chunk(state, c) for c in chunks]
+        counts = [len(_accepted(task, k, rng, search_config)) for k in kids]
+        kept = [(k, c) for k, c in zip(kids, counts) if c]
+        if len(kept) < 2:
+            continue
+        most = max(c for _, c in kept)
+        labels = []
+        for kid, count in kept:
+            won = sum(complete_from(task, kid, seed=j, expansions=expansions) for j in range(rollouts_per))
+            e = encode(task, [kid], [count / most], window)
+            _append(rows, window=e.window[0], features=e.features[0], target=won / rollouts_per,
+                    share=count / most, group=seed * 10_000 + g, task=seed * 10_000 + g)  # fmt: skip
+            labels.append(won)
+        log.info("%s K=%d %s, %d left: children's rollout wins %s of %d", task.shape_name, task.pieces,
+                 task.removal, left, labels, rollouts_per)  # fmt: skip
+        np.savez_compressed(out, **{k: np.asarray(v) for k, v in rows.items()})
+
+
+def _accepted(task, state, rng, config: SearchConfig) -> np.ndarray:
+    """The accepted chunks the solver's node expansion samples at `state`."""
+    deep = config.deep(task)
+    return sample_accepted(task, state, seed=int(rng.integers(1 << 31)), num_samples=config.samples_per_node,
+                           closed_share=config.share_for(task), thin=int(deep), wide_seeds=deep)  # fmt: skip
+
+
+def pairs_right(score: np.ndarray, target: np.ndarray, group: np.ndarray, gap: float) -> tuple[float, int]:
+    """Share of sibling pairs whose targets differ by more than `gap` that `score` orders as the targets
+    do (ties count half)."""
+    right, total = 0.0, 0
+    order = np.argsort(group, kind="stable")
+    g, s, t = group[order], score[order], target[order]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(g)]):
+        for i in range(a, b):
+            for j in range(i + 1, b):
+                if abs(t[i] - t[j]) <= gap:
+                    continue
+                total += 1
+                d = (s[i] - s[j]) * (t[i] - t[j])
+                right += 1.0 if d > 0 else 0.5 if d == 0 else 0.0
+    return right / max(total, 1), total
+
+
+def fit(paths: list[str], minutes: float) -> None:
+    data = [np.load(p) for p in paths]
+    d = {k: np.concatenate([x[k] for x in data]) for k in data[0].files}
+    held = d["task"] % 5 == 0
+    log.info("%d states (%d held out), targets: %.0f%% zero, %.0f%% one", len(held), held.sum(),
+             100 * (d["target"] == 0).mean(), 100 * (d["target"] == 1).mean())  # fmt: skip
+    config = GuideConfig()
+    params = init_guide(config, jax.random.key(0))
+    optimizer = optax.adam(1e-3)
+    opt_state = optimizer.init(params)
+    train = np.flatnonzero(~held)
+    rng = np.random.default_rng(0)
+    end, steps = time.monotonic() + 60 * minutes, 0
+    while time.monotonic() < end:
+        idx = rng.choice(train, 256)
+        batch = (jnp.asarray(d["window"][idx], jnp.float32), jnp.asarray(d["features"][idx]),
+                 jnp.asarray(d["target"][idx]))  # fmt: skip
+        params, opt_state, loss = guide_step(params, opt_state, batch, config=config, optimizer=optimizer)
+        steps += 1
+        if steps % 500 == 0:
+            log.info("step %d loss %.4f", steps, float(loss))
+    test = np.flatnonzero(held)
+    chunks = np.array_split(test, max(1, len(test) // 512))
+    values = np.concatenate([
+        np.asarray(guide_values(params, jnp.asarray(d["window"][c], jnp.float32),
+                                jnp.asarray(d["features"][c]), config=config))
+        for c in chunks
+    ])  # fmt: skip
+    target, group, share = d["target"][test], d["group"][test], d["share"][test]
+    for name, score in (("lookahead share", share), ("network value", values), ("value + 0.5 share",
+                        values + 0.5 * share)):  # fmt: skip
+        for gap in (0.0, 0.2, 0.5):
+            right, total = pairs_right(score, target, group, gap)
+            log.info("held out: %-18s orders %.1f%% of %d sibling pairs (targets apart by more than %.1f)"
+                     " rightly", name, 100 * right, total, gap)  # fmt: skip
+    log.info("held out: mean |value - target| %.3f (predicting the mean: %.3f)",
+             np.abs(values - target).mean(), np.abs(target - d["target"][train].mean()).mean())  # fmt: skip
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("collect")
+    c.add_argument("out")
+    c.add_argument("--tasks", type=int, default=30)
+    c.add_argument("--seconds", type=float, default=8.0)
+    c.add_argument("--seed", type=int, default=0)
+    r = sub.add_parser("rollouts")
+    r.add_argument("out")
+    r.add_argument("--groups", type=int, default=100)
+    r.add_argument("--rollouts", type=int, default=3)
+    r.add_argument("--expansions", type=int, default=512)
+    r.add_argument("--seed", type=int, default=0)
+    f = sub.add_parser("fit")
+    f.add_argument("paths", nargs="+")
+    f.add_argument("--minutes", type=float, default=3.0)
+    args = parser.parse_args()
+    if args.cmd == "collect":
+        collect(args.out, args.tasks, args.seconds, args.seed)
+    elif args.cmd == "rollouts":
+        rollouts(args.out, args.groups, args.rollouts, args.expansions, args.seed)
+    else:
+        fit(args.paths, args.minutes)
+
+
+if __name__ == "__main__":
+    main()
