@@ -53,15 +53,15 @@ def test_general_generates_verified_assemblies_zero_shot_on_a_larger_canvas(tmp_
 def test_bench_shapes_sweeps_k_and_says_impossible_none_or_seconds():
     code, out, err = run_cli(
         "bench", "shapes", "--shapes", "box:9x3x2,box:6x6x1", "--pieces", "3,200", "--arms", "solver,general",
-        "--time-limit", "60", "--simulations", "8", "--batch", "4", "--json", timeout=400,
+        "--workers", "1,2", "--time-limit", "60", "--simulations", "8", "--batch", "4", "--json", timeout=400,
     )  # fmt: skip
     assert code == 0, out + err
     rows = {(r["shape"], r["pieces"]): r["cells"] for r in json.loads(out)["rows"]}
     assert set(rows) == {("box:9x3x2", 3), ("box:6x6x1", 3)}  # K = 200 > N: skipped
     flat = rows[("box:6x6x1", 3)]  # one voxel thick: no piece can be locked along z
-    assert flat["solver"]["impossible"] and flat["general"]["impossible"]
+    assert flat["solver"]["impossible"] and flat["solver x2"]["impossible"] and flat["general"]["impossible"]
     solved = rows[("box:9x3x2", 3)]
-    assert 0 < solved["solver"]["seconds"] < 60 and 0 < solved["general"]["seconds"] < 60
+    assert all(0 < solved[arm]["seconds"] < 60 for arm in ("solver", "solver x2", "general"))
 
 
 def test_bench_shapes_refuses_an_unknown_shape_in_one_line():

@@ -148,6 +148,12 @@ def _add_shapes(bench: argparse._SubParsersAction) -> None:
         "--time-limit", type=positive_float, default=60.0, help="seconds per arm and task (default 60)"
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--workers",
+        default="1",
+        help="the solver's searches at once, comma-separated: one arm each, side by side (e.g. 1,2; "
+        "default 1)",
+    )
     p.add_argument("--batch", type=int, default=16, help="general's lockstep episodes per round")
     add_simulations_arg(p, " for general")
     p.add_argument("--json", action="store_true")

@@ -242,9 +242,12 @@ def cmd_bench_shapes(args: argparse.Namespace) -> int:
         format_shapes_table,
         rows_json,
         shape_tasks,
+        solver_arm,
     )
 
-    arms = choices(args.arms, "--arms", ("solver", "general"))
+    named = choices(args.arms, "--arms", ("solver", "general"))
+    workers = list(counts(args.workers, "--workers"))
+    arms = [a for name in named for a in ([solver_arm(w) for w in workers] if name == "solver" else [name])]
     removals = list(REMOVAL_MODES) if args.removal == "both" else [args.removal]
     # --mesh alone benches the mesh; otherwise the named shapes, by default the five large ones
     shapes = items(args.shapes, "--shapes") if args.shapes else [] if args.mesh else list(SHAPES)

@@ -2,7 +2,8 @@
 
 For each shape (DESIA's bunny and dog, the high-level mario, bunny and spider, and a mesh at the
 resolutions asked for) and each K of the sweep that the shape allows, each arm runs until its first
-valid assembly or the time limit: the search solver, and `general` zero-shot (on a canvas larger than
+valid assembly or the time limit: the search solver (with `--workers 1,2`: one search, and two at once,
+`rllock.search.portfolio`), and `general` zero-shot (on a canvas larger than
 its own where the shape needs one: `rllock.search.serving.canvas_for`). A task with a proof that it
 has no assembly (`rllock.core.feasibility`) is marked so without searching. Times are wall clock from
 the start of the arm, `general`'s loading and compiling included.
@@ -24,6 +25,7 @@ from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.search.guide import Guide
 from rllock.search.inference import load_policy, with_simulations
+from rllock.search.portfolio import portfolio_search
 from rllock.search.solver import SearchStats, search
 
 log = logging.getLogger(__name__)
@@ -70,14 +72,24 @@ def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> 
     return out
 
 
-def solver_cell(task: Task, time_limit: float, seed: int, guide: Guide | None = None) -> Cell:
-    """Seconds to the search's first valid assembly (verified), with `guide` when given."""
+def solver_cell(
+    task: Task, time_limit: float, seed: int, guide: Guide | None = None, workers: int = 1
+) -> Cell:
+    """Seconds to the search's first valid assembly (verified), with `guide` when given, by `workers`
+    searches at once (`rllock.search.portfolio`; their start-up counted)."""
     stats = SearchStats()
     start = time.perf_counter()
-    for found in search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide):
+    if workers == 1:
+        searches = search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide)
+    else:
+        searches = portfolio_search(
+            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide
+        )
+    for found in searches:
         seconds = time.perf_counter() - start
         if not verify_labels(found.labels, task.removal).valid:
             raise AssertionError(f"the search returned an assembly of {task.shape_name} the verifier rejects")
+        searches.close()  # the portfolio's workers stop now
         return Cell(seconds, time_limit)
     return Cell(None, time_limit, placed=stats.placed)
 
@@ -92,6 +104,15 @@ def general_cell(task: Task, time_limit: float, seed: int, batch: int, simulatio
         log.warning("general on %s K=%d: %s", task.shape_name, task.pieces, exc)
         return Cell(None, time_limit)
     return Cell(arm.seconds if arm.valid else None, time_limit)
+
+
+def solver_arm(workers: int) -> str:
+    """The solver arm's name with `workers` searches at once: "solver", "solver x2", ..."""
+    return "solver" if workers == 1 else f"solver x{workers}"
+
+
+def solver_workers(arm: str) -> int:
+    return 1 if arm == "solver" else int(arm.removeprefix("solver x"))
 
 
 @dataclass(frozen=True)
@@ -133,8 +154,8 @@ def bench_shapes(
                 for arm in arms:
                     if reason is not None:
                         cells[arm] = Cell(None, time_limit, impossible=reason)
-                    elif arm == "solver":
-                        cells[arm] = solver_cell(task, time_limit, seed)
+                    elif arm.startswith("solver"):
+                        cells[arm] = solver_cell(task, time_limit, seed, workers=solver_workers(arm))
                     else:
                         cells[arm] = general_cell(task, time_limit, seed, batch, simulations)
                 row = Row(shape.label, task.size, task.topology.dims, k, removal, cells)

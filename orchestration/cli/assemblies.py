@@ -81,6 +81,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.core.feasibility import check_feasible
     from rllock.search.solver import SearchStats
 
+    if args.workers < 1:
+        raise RLLockError(f"--workers must be at least 1, got {args.workers}")
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     check_feasible(task)
     guide = None
@@ -118,6 +120,7 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
     """Search until --count assemblies, --time-limit or `stop()`, writing each (verified) as it comes and
     adding its folder to `written`; the bar shows the search's progress. `guide`: a guide network or
     None (the plain search)."""
+    from rllock.search.portfolio import portfolio_search
     from rllock.search.solver import SearchConfig, search
 
     config = SearchConfig()
@@ -143,17 +146,13 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
                     elapsed,
                 )
 
-        limit = args.time_limit
-        found = search(
-            task,
-            seed=args.seed,
-            time_limit=limit,
-            config=config,
-            stats=stats,
-            stop=stop,
-            report=report,
-            guide=guide,
+        common = dict(
+            time_limit=args.time_limit, config=config, stats=stats, stop=stop, report=report, guide=guide
         )
+        if args.workers == 1:
+            found = search(task, seed=args.seed, **common)
+        else:
+            found = portfolio_search(task, seed=args.seed, workers=args.workers, **common)
         for f in found:
             folder = out / f"assembly_{len(written) + 1:03d}"
             write_assembly(
@@ -165,8 +164,9 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
                     "name": "search",
                     **asdict(config),
                     **({} if guide is None else {"guide": guide.source}),
+                    **({} if args.workers == 1 else {"workers": args.workers}),
                 },
-                seed=args.seed,
+                seed=f.seed,
                 timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
                 picture=picture,
             )
@@ -293,6 +293,13 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         metavar="CHECKPOINT",
         help="order and prune the search with a guide network: alone, the shipped one; or a run of "
         "rllock train-guide, or one of its checkpoints (default: the plain search)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="searches run at once, one process (core) each, from different seeds; the first assemblies "
+        "found are kept (default %(default)s: the plain search, reproducible by --seed)",
     )
     p.set_defaults(func=cmd_solve)
 

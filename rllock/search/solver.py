@@ -15,7 +15,7 @@ growth, children with the smallest cut) and restarts less often.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -105,6 +105,7 @@ class Found:
     labels: np.ndarray  # int grid [x, y, z], 1..K
     seconds: float  # time since the previous assembly (or the start)
     expansions: int  # node expansions since the previous assembly
+    seed: int  # the seed of the search that found it (its run with that seed finds it again)
 
 
 @dataclass
@@ -296,7 +297,7 @@ def search(
     report: Callable[[SearchStats], None] | None = None,
     guide: Guide | None = None,
     record: Record | None = None,
-) -> Iterator[Found]:
+) -> Generator[Found, None, None]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
     to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network orders and prunes
@@ -326,7 +327,7 @@ def search(
             continue
         seen.add(key)
         now = time.monotonic()
-        yield Found(task.topology.to_grid(labels), now - last, used)
+        yield Found(task.topology.to_grid(labels), now - last, used, seed)
         last, used, restart = now, 0, 0
 
 

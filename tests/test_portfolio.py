@@ -1,0 +1,59 @@
+"""`solve --workers N`: N searches from different seeds in N processes (`rllock.search.portfolio`)."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import time
+
+import numpy as np
+from helpers import run_cli
+
+from rllock.core.env import make_task
+from rllock.core.verifier import verify_labels
+from rllock.files.assembly import read_assembly
+from rllock.search.portfolio import portfolio_search, worker_seed
+from rllock.search.solver import SearchStats, search
+
+
+def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed():
+    task = make_task("cube4", 7)
+    found = []
+    for f in portfolio_search(task, seed=0, workers=2, time_limit=120):
+        found.append(f)
+        if len(found) == 4:
+            break
+    assert len({f.labels.tobytes() for f in found}) == 4
+    assert all(verify_labels(f.labels, task.removal).valid for f in found)
+    seeds = {worker_seed(0, 0), worker_seed(0, 1)}
+    assert worker_seed(0, 0) == 0 and len(seeds) == 2 and {f.seed for f in found} <= seeds
+    for f in found:  # a worker runs the plain search: its seed alone finds the assembly again
+        again = [g.labels for g, _ in zip(search(task, seed=f.seed, time_limit=60), range(4))]
+        assert any(np.array_equal(f.labels, a) for a in again)
+    assert not mp.active_children()  # leaving the loop stopped every worker
+
+
+def test_workers_stop_at_the_time_limit_with_their_progress_summed():
+    task = make_task("desia-bunny", 80)  # none in a few seconds
+    stats, reports = SearchStats(), []
+    started = time.monotonic()
+    found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
+    elapsed = time.monotonic() - started
+    assert not found and 4 <= elapsed < 7, elapsed
+    assert reports and stats.expansions > 0 and stats.restarts >= 2 and 0 < stats.placed < 79
+    assert not mp.active_children()
+
+
+def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_path):
+    out = tmp_path / "o"
+    code, stdout, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--count", "3", "--workers", "2", "--out", str(out)
+    )
+    assert code == 0 and "solve: 3 valid assemblies" in stdout, err
+    for folder in sorted(out.glob("assembly_*")):
+        labels, meta = read_assembly(folder)
+        assert verify_labels(labels).valid
+        method = json.loads((folder / "assembly.json").read_text())["method"]
+        assert method["workers"] == 2 and meta["seed"] in {worker_seed(0, 0), worker_seed(0, 1)}
+    code, _, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--workers", "0", "--out", str(out))
+    assert code == 2 and err.strip() == "rllock: error: --workers must be at least 1, got 0"
