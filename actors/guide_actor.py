@@ -1,7 +1,16 @@
-"""Search actors for the guide network (`rllock train-guide`): each call draws a curriculum task, runs the
-search solver on it with the latest guide weights (every other search without a guide, so that the
-data also shows what the plain search meets), and pushes the states the search finished, encoded, with
-their value targets into the replay buffer actor."""
+"""Search actors for the guide network (`rllock train-guide`). Each call draws a curriculum task and runs
+the search solver on it with the latest guide weights (every other search without a guide, so that the
+run shows what the guide changes), keeping a few of the states it left (`solver.Record`), `min_left`
+to `max_left` pieces before the end (a reservoir sample). Each kept state's children, as the search
+makes them, are then labelled by rollouts: the share of `rollouts` plain searches from the child that
+reach an assembly.
+The encoded children and their labels go to the replay buffer actor.
+
+Why rollouts: how deep the search happened to go below a state is mostly the search's luck, and a
+network trained on it ordered siblings no better than chance (docs/benchmarks.md, "What a guide can
+learn from"); a child's rollouts mostly agree (all win or all lose), so its label is a property of the
+remainder it leaves.
+"""
 
 from __future__ import annotations
 
@@ -19,7 +28,7 @@ from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts, derive_seed
 from rllock.search.curriculum import draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode
-from rllock.search.solver import SearchStats, search
+from rllock.search.solver import SearchStats, complete_from, expand, search
 
 
 @dataclass(frozen=True)
@@ -31,7 +40,8 @@ class SearchReport:
     solved: bool
     placed: int  # the most pieces placed
     pieces: int  # K
-    states: int  # states recorded
+    states: int  # labelled children pushed
+    winning: float  # their mean label
     seconds: float
     version: int
     pid: int
@@ -39,34 +49,71 @@ class SearchReport:
     buffer: BufferCounts | None = None
 
 
-class Recording:
-    """The states a search finished, encoded as they come, with their targets."""
+class Probes:
+    """A uniform sample of at most `size` of the states a search left with `low` to `high` pieces to
+    place (reservoir sampling: memory bounded whatever the search's length)."""
 
-    def __init__(self, task: Task, window: int):
-        self.task, self.window = task, window
-        self.windows: list[np.ndarray] = []
-        self.features: list[np.ndarray] = []
-        self.targets: list[float] = []
+    def __init__(self, task: Task, size: int, low: int, high: int, rng: np.random.Generator):
+        self.task, self.size, self.low, self.high, self.rng = task, size, low, high, rng
+        self.kept: list[State] = []
+        self.seen = 0
 
-    def __call__(self, state: State, target: float, share: float) -> None:
-        e = encode(self.task, [state], [share], self.window)
-        self.windows.append(e.window[0])
-        self.features.append(e.features[0])
-        self.targets.append(target)
+    def __call__(self, state: State, share: float) -> None:
+        del share
+        left = self.task.pieces - 1 - state.placed
+        if not self.low <= left <= self.high:
+            return
+        self.seen += 1
+        if len(self.kept) < self.size:
+            self.kept.append(state)
+        else:
+            at = int(self.rng.integers(self.seen))
+            if at < self.size:
+                self.kept[at] = state
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        w = self.window
-        if not self.targets:
-            return np.zeros((0, w, w, w, CHANNELS), np.int8), np.zeros((0, GLOBALS), np.float32), np.zeros(0)
-        return np.stack(self.windows), np.stack(self.features), np.asarray(self.targets, np.float32)
+
+@dataclass(frozen=True)
+class Labelled:
+    """Encoded children with their rollout labels."""
+
+    window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
+    features: np.ndarray  # float32 [B, GLOBALS]
+    target: np.ndarray  # float32 [B]
+
+
+def label_children(task: Task, parents: list[State], config: GuideTrainConfig, seed: int) -> Labelled:
+    """The children of each of `parents` (`solver.expand`), each labelled by the share of
+    `config.rollouts` plain searches from it that reach an assembly."""
+    w = config.guide.window
+    windows, features, targets = [np.zeros((0, w, w, w, CHANNELS), np.int8)], [np.zeros((0, GLOBALS))], []
+    for p, parent in enumerate(parents):
+        children = expand(task, parent, seed=derive_seed(seed, p))
+        if not children:
+            continue
+        e = encode(task, [c.state for c in children], [c.share for c in children], w)
+        windows.append(e.window)
+        features.append(e.features)
+        for c, child in enumerate(children):
+            won = sum(
+                complete_from(
+                    task, child.state, seed=derive_seed(seed, p, c, r), expansions=config.rollout_expansions
+                )
+                for r in range(config.rollouts)
+            )
+            targets.append(won / config.rollouts)
+    return Labelled(
+        np.concatenate(windows), np.concatenate(features).astype(np.float32), np.asarray(targets, np.float32)
+    )
 
 
 def run_search(
     config: GuideTrainConfig, seed: int, number: int, guide: Guide | None
-) -> tuple[Recording, bool, int, Task]:
-    """Search number `number` of an actor seeded `seed`: (its recording, solved, pieces placed, task)."""
-    task = draw_task(np.random.default_rng([seed, number]), config)
-    recording = Recording(task, config.guide.window)
+) -> tuple[Labelled, bool, int, Task]:
+    """Search number `number` of an actor seeded `seed`: (its labelled probes, solved, pieces placed,
+    task)."""
+    rng = np.random.default_rng([seed, number])
+    task = draw_task(rng, config)
+    probes = Probes(task, config.probes, config.min_left, config.max_left, rng)
     stats = SearchStats()
     found = search(
         task,
@@ -74,10 +121,10 @@ def run_search(
         time_limit=config.search_seconds,
         stats=stats,
         guide=guide,
-        record=recording,
+        record=probes,
     )
     solved = next(found, None) is not None
-    return recording, solved, stats.placed, task
+    return label_children(task, probes.kept, config, derive_seed(seed, number, 1)), solved, stats.placed, task
 
 
 @ray.remote
@@ -94,17 +141,22 @@ class GuideActor:
             self.params, self.version = ray.get(weights[0]), version
         start = time.perf_counter()
         guided = version > 0 and self.searches % 2 == 0
-        guide = Guide(self.config.guide, self.params, f"version {version}") if guided else None
-        recording, solved, placed, task = run_search(self.config, self.seed, self.searches, guide)
+        guide = (
+            Guide(self.config.guide, self.params, f"version {version}", self.config.max_left)
+            if guided
+            else None
+        )
+        labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide)
         self.searches += 1
-        counts = ray.get(buffer.add.remote(*recording.arrays()))
+        counts = ray.get(buffer.add.remote(labelled.window, labelled.features, labelled.target))
         return SearchReport(
             f"{task.shape_name} K={task.pieces} {task.removal}",
             guided,
             solved,
             placed,
             task.pieces,
-            len(recording.targets),
+            len(labelled.target),
+            float(labelled.target.mean()) if len(labelled.target) else 0.0,
             time.perf_counter() - start,
             version,
             os.getpid(),

@@ -2,8 +2,8 @@
 
 The buffer holds encoded search states (`rllock.search.guide.encode`: a window and features, both of a
 fixed size whatever the shape) with their value targets, in a ring. The learner minimises the binary
-cross-entropy between the network's value and the target (the share of the pieces left that the search
-below the state placed), with Adam; its step is a pure jitted function.
+cross-entropy between the network's value and the target (the share of the rollouts from the state that
+reached an assembly, `actors.guide_actor`), with Adam; its step is a pure jitted function.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """`rllock train-guide`: the guide network trained by our actor-learner system.
 
 Search actors (`actors.guide_actor`) each run the search solver on a curriculum task with the latest
-weights version and push the states it finished, with their value targets, into the replay buffer actor
+weights version and push the children of a few states it left, labelled by rollouts, into the replay
+buffer actor
 (`learner.guide_learner.GuideBuffer`); this process learns from the buffer (at most `replay_ratio`
 sampled states per state produced), hands out a new weights version every `publish_every` steps, writes
 TensorBoard events and keeps:
@@ -227,7 +228,7 @@ class _GuideRun:
         assert report.buffer is not None
         self.available = report.buffer.size
         log.info(
-            "search %d (%s, %s): %s, %d/%d placed, %d states in %.0f s",
+            "search %d (%s, %s): %s, %d/%d placed, %d states labelled (mean %.2f) in %.0f s",
             c.searches,
             report.task,
             "guided" if report.guided else "plain",
@@ -235,11 +236,14 @@ class _GuideRun:
             report.placed,
             report.pieces - 1,
             report.states,
+            report.winning,
             report.seconds,
         )
         step = self.learner.step
         self.writer.add_scalar("search/solved", float(report.solved), c.searches)
         self.writer.add_scalar("search/placed_share", report.placed / max(report.pieces - 1, 1), c.searches)
+        if report.states:
+            self.writer.add_scalar("probes/mean_label", report.winning, c.searches)
         self.writer.add_scalar("buffer/size", report.buffer.size, step)
         self.writer.add_scalar("buffer/solved_states", report.buffer.successes, step)
         if c.guided:

@@ -308,8 +308,9 @@ class GuideConfig:
 @dataclass(frozen=True)
 class GuideTrainConfig:
     """`rllock train-guide`: Ray actors run the search solver on a curriculum of random shapes, shipped
-    shapes and K, guided by the latest network; the states it finished, with how far the search below
-    each went, train the guide network (`rllock.search.guide`)."""
+    shapes and K, every other search guided by the latest network; the children of a few states each
+    search finished, labelled by rollouts (the share of plain searches from a child that reach an
+    assembly), train the guide network (`rllock.search.guide`)."""
 
     minutes: float = 10.0
     """Wall-clock budget, a hard limit (on resume: the time to add)."""
@@ -323,6 +324,18 @@ class GuideTrainConfig:
     """Search actors; 0 = one per CPU core left after the learner's (at least one)."""
     search_seconds: float = 20.0
     """Seconds a search actor gives one curriculum task (it stops at the first assembly)."""
+    probes: int = 2
+    """States of each search (drawn among those it finished, `min_left` to `max_left` pieces before the
+    end) whose children are labelled by rollouts and go to the replay buffer."""
+    min_left: int = 3
+    """The fewest pieces left at a probed state."""
+    max_left: int = 20
+    """The most pieces left at a probed state: where searches fail, the last pieces."""
+    rollouts: int = 3
+    """Plain searches from each child of a probed state; its value target is the share that reach an
+    assembly."""
+    rollout_expansions: int = 512
+    """Node expansions of one rollout (a few Luby restarts)."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
@@ -347,6 +360,9 @@ class GuideTrainConfig:
         positive = {
             "minutes": self.minutes,
             "search_seconds": self.search_seconds,
+            "probes": self.probes,
+            "rollouts": self.rollouts,
+            "rollout_expansions": self.rollout_expansions,
             "buffer_capacity": self.buffer_capacity,
             "batch_size": self.batch_size,
             "guide_learning_rate": self.guide_learning_rate,
@@ -361,6 +377,8 @@ class GuideTrainConfig:
             raise RLLockError(f"--actors must be >= 0, got {self.actors}")
         if not 8 <= self.min_voxels <= self.max_voxels:
             raise RLLockError("--min-voxels must be at least 8 and at most --max-voxels")
+        if not 1 <= self.min_left <= self.max_left:
+            raise RLLockError("--min-left must be at least 1 and at most --max-left")
         if self.max_pieces < 5:
             raise RLLockError(f"--max-pieces must be at least 5, got {self.max_pieces}")
         if self.guide.window < 4 or self.guide.window % 4:

@@ -1,5 +1,6 @@
 """The guide network and the search it guides: the plain search unchanged, the inputs against a simple
-reference, the value targets the search records, guided assemblies verified, bad guide checkpoints."""
+reference, the states the search reports and their rollout labels, guided assemblies verified, bad guide
+checkpoints."""
 
 from __future__ import annotations
 
@@ -12,16 +13,18 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
+from actors.guide_actor import Probes, label_children
 from learner.guide_learner import GuideBuffer, GuideLearner
 from rllock.config import GuideConfig, GuideTrainConfig, to_json
-from rllock.core.env import apply_chunk, initial_state, make_task, sample_accepted
+from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files import orbax_io
+from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide
-from rllock.search.solver import SearchStats, search, solve
+from rllock.search.solver import SearchStats, complete_from, expand, search, solve
 
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
@@ -93,19 +96,45 @@ def test_the_window_matches_a_cell_by_cell_reference_and_features_are_bounded():
         assert (np.diff(remaining) < 0).all() and remaining[0] == 1.0
 
 
-def test_the_search_records_value_targets_it_can_stand_behind():
-    """Every finished state has a target in [0, 1]; the path to an assembly (the root among it) is 1,
-    dead ends are 0, and a state's target never exceeds what its subtree could place."""
+def test_the_search_reports_the_states_it_leaves_and_an_assemblys_path_whole():
     task = make_task("cube4", 7)
-    recorded = []
-    found = next(search(task, seed=0, time_limit=60, record=lambda s, v, share: recorded.append((s, v))))
+    left = []
+    found = next(search(task, seed=0, time_limit=60, record=lambda s, share: left.append((s, share))))
     assert verify_labels(found.labels, task.removal).valid
-    targets = np.array([v for _, v in recorded])
-    assert ((targets >= 0) & (targets <= 1)).all()
-    assert any(s.placed == 0 and v == 1.0 for s, v in recorded)  # the root of the solved restart
-    assert (targets == 0).any() and (targets == 1).any()
-    solved = [s for s, v in recorded if v == 1.0]
-    assert {s.placed for s in solved} >= set(range(task.pieces - 1))  # every depth of the path
+    assert all(0 < share <= 1 for _, share in left)
+    # The last states reported are the path to the assembly, the root first: each a prefix of it.
+    path = left[-(task.pieces - 1) :]
+    assert [s.placed for s, _ in path] == list(range(task.pieces - 1)) and path[0][1] == 1.0
+    flat = found.labels[tuple(task.topology.coords.T)]
+    for s, _ in path:
+        placed = s.labels > 0
+        np.testing.assert_array_equal(s.labels[placed], flat[placed])
+
+
+def test_rollouts_tell_a_prefix_of_an_assembly_from_a_dead_end():
+    task = make_task("cube4", 7)
+    path = []
+    next(search(task, seed=0, time_limit=60, record=lambda s, share: path.append(s)))
+    prefix = path[-2]  # the assembly's path, one piece before its last placed piece
+    assert complete_from(task, prefix, seed=0, expansions=400)
+    # A first piece that walls the cube in two: no piece can keep the rest connected, so no rollout wins.
+    wall = np.where(task.topology.coords[:, 0] == 1, 1, 0).astype(np.int16)
+    assert not complete_from(task, State(wall, 1), seed=0, expansions=400)
+
+
+def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
+    task = make_task("cube4", 7)
+    config = GuideTrainConfig(guide=CONFIG, rollouts=2, rollout_expansions=200)
+    probes = Probes(task, 2, 1, 4, np.random.default_rng(0))
+    next(search(task, seed=1, time_limit=60, record=probes))
+    assert probes.seen >= 2 and len(probes.kept) == 2
+    assert all(1 <= task.pieces - 1 - s.placed <= 4 for s in probes.kept)
+    labelled = label_children(task, probes.kept, config, seed=3)
+    children = sum(len(expand(task, s, seed=derive_seed(3, p))) for p, s in enumerate(probes.kept))
+    assert len(labelled.target) == children == len(labelled.window) == len(labelled.features)
+    assert set(np.unique(labelled.target)) <= {0.0, 0.5, 1.0} and labelled.target.max() == 1.0
+    again = label_children(task, probes.kept, config, seed=3)
+    np.testing.assert_array_equal(labelled.target, again.target)
 
 
 def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():

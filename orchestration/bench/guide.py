@@ -71,7 +71,9 @@ class GuideRow:
 def bench_guide(
     cells: list[GuideCell], guide: Guide, *, seeds: list[int], arms: list[str], time_limit: float
 ) -> list[GuideRow]:
-    untrained = Guide(guide.config, init_guide(guide.config, jax.random.PRNGKey(0)), "untrained (seed 0)")
+    untrained = Guide(
+        guide.config, init_guide(guide.config, jax.random.PRNGKey(0)), "untrained (seed 0)", guide.horizon
+    )
     guides = {"solver": None, "guided": guide, "untrained": untrained}
     rows = []
     for cell in cells:

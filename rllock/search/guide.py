@@ -1,9 +1,9 @@
 """The guide network: a learned judgement of a search state, at a cost that does not grow with the shape.
 
 The search solver (`rllock.search.solver`) places pieces one at a time; where it fails, the failure is set
-many pieces before the end by what remains of the shape. The guide gives each child of a node a value in
-[0, 1], the share of the pieces still to place that the search below it is expected to place (1: it
-reaches an assembly), from what it sees of the state:
+pieces before the end by what remains of the shape. The guide gives each child of a node (within its
+horizon: the last pieces) a value in [0, 1], the chance that a plain search from it reaches an assembly
+(what `rllock train-guide` labels by rollouts), from what it sees of the state:
 - a window of W^3 voxels centred on the piece just placed, where the next piece starts (`WINDOW`
   channels: the remaining volume R, the placed pieces, outside the shape);
 - features (`GLOBALS`): how much is left of the shape and of the pieces, the piece size, N and K, and
@@ -27,6 +27,7 @@ import numpy as np
 
 from rllock.config import GuideConfig
 from rllock.core.env import State, Task
+from rllock.search.network import Conv3
 
 CHANNELS = 3  # remaining volume, placed pieces, outside the shape
 GLOBALS = 15
@@ -42,7 +43,7 @@ class GuideNet(nn.Module):
     def __call__(self, window: jax.Array, features: jax.Array) -> jax.Array:
         x = window
         for f in self.config.guide_features:
-            x = nn.relu(nn.Conv(f, (3, 3, 3))(x))
+            x = nn.relu(Conv3(f)(x))  # the U-Net's matmul convolution: several times XLA's on the CPU
             x = nn.avg_pool(x, (2, 2, 2), strides=(2, 2, 2))
         x = jnp.concatenate([x.reshape(x.shape[0], -1), features], axis=-1)
         x = nn.relu(nn.Dense(self.config.guide_hidden)(x))
@@ -161,6 +162,8 @@ class Guide:
     config: GuideConfig
     params: dict
     source: str  # a checkpoint's path or name, or "untrained (seed N)"
+    horizon: int = 20
+    """It judges children with at most this many pieces left: where it was trained (`--max-left`)."""
 
     def values(self, task: Task, states: list[State], shares: list[float]) -> np.ndarray:
         """Values of `states` with their lookahead shares (`solver.Child`), in one network call padded

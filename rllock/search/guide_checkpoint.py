@@ -66,12 +66,13 @@ def load_guide(source: str | Path = SHIPPED_GUIDE) -> Guide:
     step_dir = ckpt.find_step_dir(source, shipped=ckpt.SHIPPED if policy else GUIDES)
     doc = read_guide_metadata(step_dir)  # a shipped policy's name: the error says what it is
     try:
-        config = from_json(GuideTrainConfig, doc["config"]).guide
+        trained = from_json(GuideTrainConfig, doc["config"])
     except (KeyError, TypeError, ValueError) as exc:
         raise RLLockError(f"guide checkpoint {step_dir} has damaged metadata ({exc})") from None
+    config = trained.guide
     template = {"params": jax.eval_shape(lambda key: init_guide(config, key), jax.random.PRNGKey(0))}
     params = restore_like(step_dir, template, partial=True)["params"]
-    return Guide(config, params, str(step_dir))
+    return Guide(config, params, str(step_dir), trained.max_left)
 
 
 def is_guide_run(source: Path) -> bool:

@@ -142,10 +142,10 @@ def _never() -> bool:
     return False
 
 
-Record = Callable[[State, float, float], None]
-"""Takes a state the search left, its value target (the share of the pieces left at that state that the
-search below it placed; 1: it reached an assembly, 0: nothing below it) and its lookahead share (its
-accepted continuations as a share of its siblings' most). What a guide network learns from."""
+Record = Callable[[State, float], None]
+"""Takes each state the search leaves (its subtree done, its restart cut short, or on an assembly's path),
+with its lookahead share (`Child.share`): where a guide network's training (`actors.guide_actor`) picks
+the states it labels."""
 
 
 class Child(NamedTuple):
@@ -170,7 +170,6 @@ class _Expander:
     stats: SearchStats
     report: Callable[[SearchStats], None] | None
     guide: Guide | None
-    record: Record | None
     expansions: int = 0
 
     def sample(self, state: State) -> tuple[np.ndarray, int]:
@@ -200,10 +199,10 @@ class _Expander:
 
     def children_of(self, state: State, chunks: np.ndarray) -> list[Child]:
         """Children in pop order (best last); under lookahead their own candidates are attached and
-        those with none dropped (the guide is never asked about them, so they are not recorded)."""
+        those with none dropped."""
         kids = [apply_chunk(state, c) for c in chunks]
         if not self.config.lookahead or state.placed + 1 == self.target:
-            return _guided(self.task, [Child(k, None, 0.0) for k in kids], self.guide, self.config)
+            return self.guided([Child(k, None, 0.0) for k in kids])
         scored = []
         for kid in kids:
             grand, count = self.sample(kid)
@@ -212,7 +211,15 @@ class _Expander:
         scored.sort(key=lambda t: t[0])
         most = max((count for count, _, _ in scored), default=1)
         children = [Child(kid, grand, count / most) for count, kid, grand in scored]
-        return _guided(self.task, children, self.guide, self.config)
+        return self.guided(children)
+
+    def guided(self, children: list[Child]) -> list[Child]:
+        """`children` judged by the guide (`_guided`) when there is one and they are within its horizon
+        (`Guide.horizon`: the pieces left where it was trained)."""
+        guide = self.guide
+        if guide is None or not children or self.target - children[0].state.placed > guide.horizon:
+            return children
+        return _guided(self.task, children, guide, self.config)
 
 
 def _dfs(
@@ -233,57 +240,39 @@ def _dfs(
     `target` placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
     PROGRESS_EVERY seconds. A `guide` orders the children by its values (all children of a node in one
-    call) and drops the hopeless ones; `record` takes every state whose subtree the search finished, with
-    its value target."""
-    nodes = _Expander(task, rng, config, target, stats, report, guide, record)
+    call) and drops the hopeless ones; `record` takes every state the search leaves (`Record`)."""
+    nodes = _Expander(task, rng, config, target, stats, report, guide)
     root = initial_state(task) if start is None else start
     stack = [nodes.children_of(root, nodes.sample(root)[0])]
-    # The state each stack level holds the children of, the deepest below it, its lookahead share.
-    path = [[root, root.placed, 1.0]]
+    path = [Child(root, None, 1.0)]  # the child each stack level holds the children of
     while stack:
         if nodes.expansions >= budget or time.monotonic() > deadline or stop():
-            while record is not None and path:
-                _leave(path, target, record)  # cut short: how far each went is a lower bound
+            _left(path, record)
             return None, nodes.expansions
         if not stack[-1]:
             stack.pop()
-            _leave(path, target, record)
+            _left(path[-1:], record)
+            path.pop()
             continue
-        child, grand, share = stack[-1].pop()
-        if child.placed == target:
-            for level in path:
-                level[1] = target
-            while path:
-                _leave(path, target, record)
-            return child, nodes.expansions
-        if grand is None:
-            grand = nodes.sample(child)[0]
-        stack.append(nodes.children_of(child, grand))
-        path.append([child, child.placed, share])
+        child = stack[-1].pop()
+        if child.state.placed == target:
+            _left(path, record)
+            return child.state, nodes.expansions
+        grand = nodes.sample(child.state)[0] if child.grand is None else child.grand
+        stack.append(nodes.children_of(child.state, grand))
+        path.append(child)
     return None, nodes.expansions
 
 
-def _guided(task: Task, children: list[Child], guide: Guide | None, config: SearchConfig) -> list[Child]:
-    """`children` in pop order: as they are without a guide; with one, by its values plus
+def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfig) -> list[Child]:
+    """`children` in pop order by the guide's values plus
     `config.guide_count_weight` times their lookahead share, best last, without those valued below
     `config.prune_below` (never all)."""
-    if guide is None or not children:
-        return children
     values = guide.values(task, [c.state for c in children], [c.share for c in children])
     score = [values[i] + config.guide_count_weight * c.share for i, c in enumerate(children)]
     order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
     return kept or [children[order[-1]]]  # never all: the best child is tried whatever its value
-
-
-def _leave(path: list[list], target: int, record: Record | None) -> None:
-    """The search is done with the subtree of `path`'s last state: record it, and tell its parent how
-    deep it went."""
-    state, deepest, share = path.pop()
-    if path:
-        path[-1][1] = max(path[-1][1], deepest)
-    if record is not None and state.placed < target:
-        record(state, (deepest - state.placed) / (target - state.placed), share)
 
 
 def search(
@@ -301,7 +290,7 @@ def search(
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
     to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network orders and prunes
-    the children (`_dfs`); `record` takes the states the search finished with their value targets. A
+    the children (`_dfs`); `record` takes the states the search leaves with their lookahead shares. A
     task that provably has no assembly is an error at once (`rllock.core.feasibility`)."""
     check_feasible(task)
     stats = SearchStats() if stats is None else stats
@@ -352,6 +341,20 @@ def reach_depth(
         if state is not None:
             return state
     return None
+
+
+def _left(states: list[Child], record: Record | None) -> None:
+    """The search leaves `states` (a subtree done, a restart cut short, or an assembly's path)."""
+    if record is not None:
+        for c in states:
+            record(c.state, c.share)
+
+
+def expand(task: Task, state: State, *, seed: int, config: SearchConfig = SearchConfig()) -> list[Child]:
+    """The children of `state` as the search makes them (sampled, the lookahead's count kept as their
+    share, those with no continuation dropped), in pop order: best last."""
+    nodes = _Expander(task, np.random.default_rng(seed), config, task.pieces - 1, SearchStats(), None, None)
+    return nodes.children_of(state, nodes.sample(state)[0])
 
 
 def complete_from(
