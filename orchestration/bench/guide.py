@@ -19,7 +19,7 @@ import jax
 from orchestration.bench.arms import warm_process
 from orchestration.bench.shapes import Cell, solver_cell
 from orchestration.bench.specs import parse_list
-from rllock.core.env import Task, make_task
+from rllock.core.env import Task, initial_state, make_task
 from rllock.errors import RLLockError
 from rllock.search.guide import Guide, init_guide
 
@@ -80,6 +80,8 @@ def bench_guide(
         task = cell.task()
         if cell.resolution is None:  # a mesh is voxelized once, by `task()`
             warm_process(cell.shape, cell.pieces)
+        for g in (guide, untrained):  # the network compiled before any arm is timed (one batch shape)
+            g.values(task, [initial_state(task)], [1.0])
         results: dict[str, list[Cell]] = {arm: [] for arm in arms}
         for seed in seeds:
             for arm in arms:
