@@ -1,15 +1,18 @@
 """Can a guide network judge a child better than the solver's own lookahead count? An offline check.
 
-`collect OUT.npz --tasks N --seconds S --seed X`: plain searches (no guide) on N curriculum tasks, S
-seconds each, recording every finished state encoded as the guide sees it, with its value target, its
-lookahead share and its sibling group (the task and the parent state).
-`fit A.npz [B.npz ...] --minutes M`: trains the guide network on the tasks whose index is not a multiple
-of 5 and, on the others (held out), counts sibling pairs with different targets ordered rightly by the
+`rollouts OUT.npz --groups G --seed X`: G nodes 4-16 pieces before the end, reached by the plain search
+on curriculum tasks, their children as the solver makes them, each labelled by the share of `--rollouts`
+plain searches from it that reach an assembly; saved encoded as the guide sees them, with their
+lookahead shares and their node.
+`fit A.npz [B.npz ...] --minutes M`: trains the guide network on the nodes whose index is not a multiple
+of 5 and, on the others (held out), counts sibling pairs with different labels ordered rightly by the
 lookahead share, by the network's value, and by the blend the guided search uses (value + 0.5 share).
+
+(Until b6b005b a `collect` command recorded the search's own targets, the share of the pieces left
+that the DFS below a state placed; docs/benchmarks.md has what `fit` made of them.)
 """
 
 import argparse
-import hashlib
 import logging
 import time
 
@@ -23,7 +26,7 @@ from rllock.config import GuideConfig, GuideTrainConfig
 from rllock.core.env import apply_chunk, distinct_subset, sample_accepted
 from rllock.search.curriculum import draw_task
 from rllock.search.guide import encode, guide_values, init_guide
-from rllock.search.solver import SearchConfig, complete_from, reach_depth, search
+from rllock.search.solver import SearchConfig, complete_from, reach_depth
 
 log = logging.getLogger("guide_siblings")
 
@@ -31,27 +34,6 @@ log = logging.getLogger("guide_siblings")
 def _append(rows: dict[str, list], **values) -> None:
     for key, value in values.items():
         rows[key].append(value)
-
-
-def collect(out: str, tasks: int, seconds: float, seed: int) -> None:
-    rows: dict[str, list] = {k: [] for k in ("window", "features", "target", "share", "group", "task")}
-    config, window = GuideTrainConfig(), GuideConfig().window
-    for i in range(tasks):
-        task = draw_task(np.random.default_rng([seed, i]), config)
-        task_id = seed * 10_000 + i
-
-        def record(state, target, share, task=task, task_id=task_id):
-            parent = np.where(state.labels == state.placed, 0, state.labels)
-            digest = hashlib.blake2b(parent.tobytes() + task_id.to_bytes(8, "little"), digest_size=8).digest()
-            e = encode(task, [state], [share], window)
-            _append(rows, window=e.window[0], features=e.features[0], target=target, share=share,
-                    group=int.from_bytes(digest, "little") >> 1, task=task_id)  # fmt: skip
-
-        before = len(rows["target"])
-        solved = next(search(task, seed=i, time_limit=seconds, record=record), None) is not None
-        log.info("%s K=%d %s: solved %s, %d states", task.shape_name, task.pieces, task.removal, solved,
-                 len(rows["target"]) - before)  # fmt: skip
-    np.savez_compressed(out, **{k: np.asarray(v) for k, v in rows.items()})
 
 
 def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: int) -> None:
@@ -156,11 +138,6 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     parser = argparse.ArgumentParser()
     sub = parser.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("collect")
-    c.add_argument("out")
-    c.add_argument("--tasks", type=int, default=30)
-    c.add_argument("--seconds", type=float, default=8.0)
-    c.add_argument("--seed", type=int, default=0)
     r = sub.add_parser("rollouts")
     r.add_argument("out")
     r.add_argument("--groups", type=int, default=100)
@@ -171,9 +148,7 @@ def main() -> None:
     f.add_argument("paths", nargs="+")
     f.add_argument("--minutes", type=float, default=3.0)
     args = parser.parse_args()
-    if args.cmd == "collect":
-        collect(args.out, args.tasks, args.seconds, args.seed)
-    elif args.cmd == "rollouts":
+    if args.cmd == "rollouts":
         rollouts(args.out, args.groups, args.rollouts, args.expansions, args.seed)
     else:
         fit(args.paths, args.minutes)
