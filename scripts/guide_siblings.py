@@ -13,6 +13,7 @@ that the DFS below a state placed; docs/benchmarks.md has what `fit` made of the
 """
 
 import argparse
+import dataclasses
 import logging
 import time
 
@@ -21,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from actors.guide_actor import label_children
 from learner.guide_learner import guide_step
 from rllock.config import GuideConfig, GuideTrainConfig
-from rllock.core.env import apply_chunk, distinct_subset, sample_accepted
 from rllock.search.curriculum import draw_task
-from rllock.search.guide import encode, guide_values, init_guide
-from rllock.search.solver import SearchConfig, complete_from, reach_depth
+from rllock.search.guide import guide_values, init_guide
+from rllock.search.solver import reach_depth
 
 log = logging.getLogger("guide_siblings")
 
@@ -38,10 +39,12 @@ def _append(rows: dict[str, list], **values) -> None:
 
 def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: int) -> None:
     """Sibling groups labelled by rollouts: a mid-episode state 4-16 pieces before the end, its children
-    as the solver makes them (lookahead share included), and for each child the share of
-    `rollouts_per` plain searches from it (`expansions` each) that reach an assembly."""
+    as the solver makes them (lookahead share included) and labelled as `rllock train-guide` labels them
+    (`actors.guide_actor.label_children`: the share of `rollouts_per` plain searches from a child,
+    `expansions` each, that reach an assembly)."""
     rows: dict[str, list] = {k: [] for k in ("window", "features", "target", "share", "group", "task")}
-    config, search_config, window = GuideTrainConfig(max_voxels=600, max_pieces=60), SearchConfig(), 8
+    config = GuideTrainConfig(max_voxels=600, max_pieces=60)
+    labels_config = dataclasses.replace(config, rollouts=rollouts_per, rollout_expansions=expansions)
     for g in range(groups):
         rng = np.random.default_rng([seed, g])
         task = draw_task(rng, config)
@@ -51,30 +54,16 @@ def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: in
         state = reach_depth(task, task.pieces - 1 - left, seed=g, time_limit=5)
         if state is None:
             continue
-        chunks = distinct_subset(_accepted(task, state, rng, search_config), 8, g)
-        kids = [apply_chunk(state, c) for c in chunks]
-        counts = [len(_accepted(task, k, rng, search_config)) for k in kids]
-        kept = [(k, c) for k, c in zip(kids, counts) if c]
-        if len(kept) < 2:
+        labelled = label_children(task, [state], labels_config, seed=g)
+        if len(labelled.target) < 2:
             continue
-        most = max(c for _, c in kept)
-        labels = []
-        for kid, count in kept:
-            won = sum(complete_from(task, kid, seed=j, expansions=expansions) for j in range(rollouts_per))
-            e = encode(task, [kid], [count / most], window)
-            _append(rows, window=e.window[0], features=e.features[0], target=won / rollouts_per,
-                    share=count / most, group=seed * 10_000 + g, task=seed * 10_000 + g)  # fmt: skip
-            labels.append(won)
-        log.info("%s K=%d %s, %d left: children's rollout wins %s of %d", task.shape_name, task.pieces,
-                 task.removal, left, labels, rollouts_per)  # fmt: skip
+        # The lookahead share is the guide's last feature (`rllock.search.guide._features`).
+        for window, features, target in zip(labelled.window, labelled.features, labelled.target):
+            _append(rows, window=window, features=features, target=target, share=features[-1],
+                    group=seed * 10_000 + g, task=seed * 10_000 + g)  # fmt: skip
+        log.info("%s K=%d %s, %d left: children's rollout labels %s", task.shape_name, task.pieces,
+                 task.removal, left, labelled.target.round(2).tolist())  # fmt: skip
         np.savez_compressed(out, **{k: np.asarray(v) for k, v in rows.items()})
-
-
-def _accepted(task, state, rng, config: SearchConfig) -> np.ndarray:
-    """The accepted chunks the solver's node expansion samples at `state`."""
-    deep = config.deep(task)
-    return sample_accepted(task, state, seed=int(rng.integers(1 << 31)), num_samples=config.samples_per_node,
-                           closed_share=config.share_for(task), thin=int(deep), wide_seeds=deep)  # fmt: skip
 
 
 def pairs_right(score: np.ndarray, target: np.ndarray, group: np.ndarray, gap: float) -> tuple[float, int]:
