@@ -324,22 +324,32 @@ def reach_depth(
     task: Task, placed: int, *, seed: int, time_limit: float, config: SearchConfig = SearchConfig()
 ) -> State | None:
     """A valid state with `placed` pieces (a seeded mid-episode state), or None within the time limit."""
-    rng = np.random.default_rng(seed)
     deadline = time.monotonic() + time_limit
-    restart = 0
-    while time.monotonic() < deadline:
+    return _restarts(task, np.random.default_rng(seed), config, placed, None, deadline, None)
+
+
+def _restarts(
+    task: Task,
+    rng: np.random.Generator,
+    config: SearchConfig,
+    target: int,
+    start: State | None,
+    deadline: float,
+    expansions: int | None,
+) -> State | None:
+    """Restarts of `_dfs` from `start` (or the root) with Luby budgets until a state with `target`
+    pieces placed (returned), the deadline or `expansions` node expansions in all, when given (None)."""
+    used, restart = 0, 0
+    left = target - (0 if start is None else start.placed)
+    while (expansions is None or used < expansions) and time.monotonic() < deadline:
         restart += 1
-        state, _ = _dfs(
-            task,
-            rng,
-            config,
-            config.restart_unit(task, placed) * luby(restart),
-            deadline,
-            placed,
-            SearchStats(),
-        )
+        budget = config.restart_unit(task, left) * luby(restart)
+        if expansions is not None:
+            budget = min(budget, expansions - used)
+        state, spent = _dfs(task, rng, config, budget, deadline, target, SearchStats(), start=start)
         if state is not None:
             return state
+        used += spent
     return None
 
 
@@ -362,19 +372,11 @@ def complete_from(
 ) -> bool:
     """Whether the search restarted from `state` (Luby budgets, `expansions` node expansions in all)
     reaches an assembly: a rollout that judges the remainder `state` leaves."""
-    rng = np.random.default_rng(seed)
     target = task.pieces - 1
     if state.placed == target:
         return True
-    used, restart = 0, 0
-    while used < expansions:
-        restart += 1
-        budget = min(config.restart_unit(task, target - state.placed) * luby(restart), expansions - used)
-        found, spent = _dfs(task, rng, config, budget, float("inf"), target, SearchStats(), start=state)
-        if found is not None:
-            return True
-        used += spent
-    return False
+    rng = np.random.default_rng(seed)
+    return _restarts(task, rng, config, target, state, float("inf"), expansions) is not None
 
 
 def solve(
