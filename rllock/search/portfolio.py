@@ -122,7 +122,8 @@ def portfolio_search(
                 raise RuntimeError(f"search worker {worker} failed: {payload}")
             else:
                 latest[worker] = payload
-                done |= {worker} if kind == "done" else set()
+                if kind == "done":
+                    done.add(worker)
                 merge_stats(list(latest.values()), stats)
                 if report is not None and time.monotonic() - stats.reported >= PROGRESS_EVERY:
                     stats.reported = time.monotonic()
