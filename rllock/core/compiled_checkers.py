@@ -10,8 +10,10 @@ are the placed pieces (chunks are connected by construction).
 Work per search node is split in two. `_prepare` runs once per node and builds incremental state:
   - part_of[v]: blocking-graph node of each voxel (pieces 0..i-2, new piece i-1, R = i);
   - ray_r[v, k]: how many R_(i-1) voxels lie strictly beyond v along direction k;
-  - base[a, p, q]: face contacts p -> q along +axis a in A_(i-1), and base_ok: per axis, whether
-    A_(i-1)'s graph is strongly connected (without the key);
+  - contacts: face contacts along each +axis in A_(i-1), those of R and of the new piece as counts
+    per node, those between placed pieces as adjacency lists (`_contacts`: sparse, since a piece
+    touches few others and K reaches thousands), and base_ok: per axis, whether A_(i-1)'s graph is
+    strongly connected (without the key);
   - r_nbr[v]: the R_(i-1) neighbours of each R_(i-1) voxel, which the sampler grows chunks over.
 Per chunk, the checks then cost O(n) (plus searches that stop early, below):
   - removable along k iff sum over chunk voxels of ray_r == pairs of chunk voxels sharing a k-line,
@@ -59,26 +61,9 @@ def prepare_node(nbr, ray, labels, piece):
                 seeds[n_seeds] = v
                 n_seeds += 1
                 break
-    ray_r = np.zeros((n_vox, 6), np.int32)
-    for v in range(n_vox):
-        if part_of[v] != r_node:
-            continue
-        for k in range(6):
-            c = 0
-            u = ray[v, k]
-            while u >= 0:
-                if part_of[u] == r_node:
-                    c += 1
-                u = ray[u, k]
-            ray_r[v, k] = c
-    base = np.zeros((3, n_parts, n_parts), np.int32)
-    for v in range(n_vox):
-        p = part_of[v]
-        for a in range(3):
-            u = nbr[v, 2 * a]
-            if u >= 0 and part_of[u] != p:
-                base[a, p, part_of[u]] += 1
-    base_ok = _base_interlocking(base, n_parts, piece - 1) if piece > 1 else np.zeros((3, 2), np.bool_)
+    ray_r = _rays_in_r(ray, part_of, r_node)
+    contacts = _contacts(nbr, part_of, n_parts)
+    base_ok = _base_interlocking(contacts, n_parts) if piece > 1 else np.zeros((3, 2), np.bool_)
     r_nbr = np.full((n_vox, 6), -1, np.int32)
     for v in range(n_vox):
         if part_of[v] != r_node:
@@ -89,7 +74,99 @@ def prepare_node(nbr, ray, labels, piece):
             if u >= 0 and part_of[u] == r_node:
                 r_nbr[v, d] = u
                 d += 1
-    return part_of, seeds[:n_seeds], ray_r, base, base_ok, r_nbr
+    return part_of, seeds[:n_seeds], ray_r, contacts, base_ok, r_nbr
+
+
+@njit(cache=True)
+def _rays_in_r(ray, part_of, r_node):
+    """ray_r[v, k]: how many R voxels lie strictly beyond v along direction k, in one sweep per
+    direction: voxels are numbered in [x, y, z] order, so the next voxel along a + direction has a
+    higher number (a - direction, lower), and its count is known before v's."""
+    n_vox = part_of.shape[0]
+    ray_r = np.zeros((n_vox, 6), np.int32)
+    for k in range(6):
+        for i in range(n_vox):
+            v = n_vox - 1 - i if k % 2 == 0 else i
+            u = ray[v, k]
+            if u >= 0:
+                ray_r[v, k] = ray_r[u, k] + (part_of[u] == r_node)
+    return ray_r
+
+
+@njit(cache=True)
+def _contacts(nbr, part_of, n_parts):
+    """The face contacts of A_(i-1) per axis, sparse, so that work grows with the contacts and not with
+    the square of the piece count. Nodes: placed pieces 0..i-2, the new piece i-1, R = i. Returns
+    (r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj): r_out[a, q] counts the
+    contacts R -> q along +a and r_in[a, q] those q -> R (new_out and new_in the same for the new piece,
+    zero until a chunk's contacts are moved in, and the only place of those between it and R); the contacts between placed pieces, which no chunk
+    changes, are adjacency lists without repeats: the heads of p's edges along +a are
+    out_adj[out_start[a, p]:out_start[a, p + 1]] and the tails of the edges into p in_adj likewise."""
+    r_node = n_parts - 1
+    r_out = np.zeros((3, n_parts), np.int32)
+    r_in = np.zeros((3, n_parts), np.int32)
+    out_deg = np.zeros(3 * n_parts + 1, np.int64)
+    in_deg = np.zeros(3 * n_parts + 1, np.int64)
+    for v in range(part_of.shape[0]):
+        p = part_of[v]
+        for a in range(3):
+            u = nbr[v, 2 * a]
+            if u < 0 or part_of[u] == p:
+                continue
+            q = part_of[u]
+            if p == r_node:
+                r_out[a, q] += 1
+            elif q == r_node:
+                r_in[a, p] += 1
+            else:
+                out_deg[a * n_parts + p + 1] += 1
+                in_deg[a * n_parts + q + 1] += 1
+    for i in range(3 * n_parts):
+        out_deg[i + 1] += out_deg[i]
+        in_deg[i + 1] += in_deg[i]
+    out_adj = np.empty(out_deg[-1], np.int32)
+    in_adj = np.empty(in_deg[-1], np.int32)
+    out_fill = out_deg[:-1].copy()
+    in_fill = in_deg[:-1].copy()
+    for v in range(part_of.shape[0]):
+        p = part_of[v]
+        if p == r_node:
+            continue
+        for a in range(3):
+            u = nbr[v, 2 * a]
+            if u < 0 or part_of[u] == p or part_of[u] == r_node:
+                continue
+            q = part_of[u]
+            out_adj[out_fill[a * n_parts + p]] = q
+            out_fill[a * n_parts + p] += 1
+            in_adj[in_fill[a * n_parts + q]] = p
+            in_fill[a * n_parts + q] += 1
+    out_start, out_adj = _unique_rows(out_deg, out_adj, n_parts)
+    in_start, in_adj = _unique_rows(in_deg, in_adj, n_parts)
+    new_out = np.zeros((3, n_parts), np.int32)
+    new_in = np.zeros((3, n_parts), np.int32)
+    return r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj
+
+
+@njit(cache=True)
+def _unique_rows(start, adj, n_parts):
+    """Adjacency rows (row r = adj[start[r]:start[r + 1]]) without repeats, as ([3, n_parts + 1] row
+    starts, the compacted list): row a * n_parts + p holds axis a, node p."""
+    mark = np.full(n_parts, -1, np.int64)
+    out = np.empty(adj.shape[0], np.int32)
+    rows = np.zeros((3, n_parts + 1), np.int64)
+    m = 0
+    for r in range(3 * n_parts):
+        a, p = r // n_parts, r % n_parts
+        rows[a, p] = m
+        for i in range(start[r], start[r + 1]):
+            q = adj[i]
+            if mark[q] != r:
+                mark[q] = r
+                out[m] = q
+                m += 1
+        rows[a, p + 1] = m
+    return rows, out[:m]
 
 
 @njit(cache=True)
@@ -187,9 +264,30 @@ def _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, owner, 
 
 
 @njit(cache=True)
-def _strongly_connected(counts, a, n_parts, skip, absent, seen, stack):
+def _visit(q, seen, stack, top):
+    """Pushes q if it is new; returns the new stack top."""
+    if seen[q]:
+        return top
+    seen[q] = True
+    stack[top] = q
+    return top + 1
+
+
+@njit(cache=True)
+def _dense_row(row, n_parts, seen, stack, top):
+    """Pushes the new nodes q with row[q] > 0 (the contacts of R or of the new piece)."""
+    for q in range(n_parts):
+        if row[q] > 0:
+            top = _visit(q, seen, stack, top)
+    return top
+
+
+@njit(cache=True)
+def _strongly_connected(contacts, a, n_parts, skip, absent, seen, stack):
     """Whether the axis-a contact graph on the nodes other than `skip` and `absent` (-1: none) is
-    strongly connected."""
+    strongly connected: everything reached from one node along the edges and against them."""
+    r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj = contacts
+    r_node, new = n_parts - 1, n_parts - 2
     start = 0
     while start == skip or start == absent:
         start += 1
@@ -207,30 +305,45 @@ def _strongly_connected(counts, a, n_parts, skip, absent, seen, stack):
         while top > 0:
             top -= 1
             p = stack[top]
-            for q in range(n_parts):
-                if seen[q]:
-                    continue
-                c = counts[a, p, q] if direction == 0 else counts[a, q, p]
-                if c > 0:
-                    seen[q] = True
-                    stack[top] = q
-                    top += 1
-                    reached += 1
+            before = top
+            if p == r_node:
+                top = _dense_row(r_out[a] if direction == 0 else r_in[a], n_parts, seen, stack, top)
+                # The contacts between R and the new piece are kept as the new piece's only.
+                if (new_in[a, r_node] if direction == 0 else new_out[a, r_node]) > 0:
+                    top = _visit(new, seen, stack, top)
+            elif p == new:
+                top = _dense_row(new_out[a] if direction == 0 else new_in[a], n_parts, seen, stack, top)
+            else:
+                # p -> R is an R in-contact of p, R -> p an out-contact; the same for the new piece.
+                if direction == 0:
+                    for i in range(out_start[a, p], out_start[a, p + 1]):
+                        top = _visit(out_adj[i], seen, stack, top)
+                    to_r, to_new = r_in[a, p], new_in[a, p]
+                else:
+                    for i in range(in_start[a, p], in_start[a, p + 1]):
+                        top = _visit(in_adj[i], seen, stack, top)
+                    to_r, to_new = r_out[a, p], new_out[a, p]
+                if to_r > 0:
+                    top = _visit(r_node, seen, stack, top)
+                if to_new > 0:
+                    top = _visit(new, seen, stack, top)
+            reached += top - before
         if reached != size:
             return False
     return True
 
 
 @njit(cache=True)
-def _base_interlocking(base, n_parts, new):
-    """Per axis, whether A_(i-1)'s graph (without the still empty node `new`) is strongly connected
+def _base_interlocking(contacts, n_parts):
+    """Per axis, whether A_(i-1)'s graph (without the still empty new node) is strongly connected
     [a, 0], and whether it is without the key [a, 1]."""
     seen = np.zeros(n_parts, np.bool_)
     stack = np.empty(n_parts, np.int32)
     out = np.zeros((3, 2), np.bool_)
+    new = n_parts - 2
     for a in range(3):
-        out[a, 0] = _strongly_connected(base, a, n_parts, -1, new, seen, stack)
-        out[a, 1] = _strongly_connected(base, a, n_parts, 0, new, seen, stack)
+        out[a, 0] = _strongly_connected(contacts, a, n_parts, -1, new, seen, stack)
+        out[a, 1] = _strongly_connected(contacts, a, n_parts, 0, new, seen, stack)
     return out
 
 
@@ -251,11 +364,14 @@ def _held_every_way(chunk, n, nbr, in_chunk, stamp):
 
 
 @njit(cache=True)
-def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, counts, stamp, sign):
-    """Moves the chunk's face contacts from R to the new piece in `counts` (sign 1), or back (-1).
-    Returns whether a contact between R and another node dropped to zero (an edge was lost)."""
-    new = r_node - 1
+def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, contacts, stamp, sign):
+    """Moves the chunk's face contacts from R to the new piece in `contacts` (sign 1), or back (-1).
+    Returns (whether a contact between R and another node dropped to zero, that is an edge was lost;
+    a bitmask of the new piece's contacts with nodes other than the key: bit a for an edge into it
+    along +a, bit 3 + a for one out of it)."""
+    r_out, r_in, new_out, new_in = contacts[0], contacts[1], contacts[2], contacts[3]
     lost = False
+    away_from_key = 0
     for j in range(n):
         v = chunk[j]
         for a in range(3):
@@ -263,53 +379,52 @@ def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, counts, stamp, sign
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    counts[a, r_node, q] -= sign
-                    lost |= counts[a, r_node, q] == 0
-                counts[a, new, q] += sign
+                    r_out[a, q] -= sign
+                    lost |= r_out[a, q] == 0
+                new_out[a, q] += sign
+                if q != 0:
+                    away_from_key |= 1 << (3 + a)
             u = nbr[v, 2 * a + 1]  # u -> v along +a
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    counts[a, q, r_node] -= sign
-                    lost |= counts[a, q, r_node] == 0
-                counts[a, q, new] += sign
-    return lost
+                    r_in[a, q] -= sign
+                    lost |= r_in[a, q] == 0
+                new_in[a, q] += sign
+                if q != 0:
+                    away_from_key |= 1 << a
+    return lost, away_from_key
 
 
 @njit(cache=True)
-def _axis_interlocking(counts, a, n_parts, new, lost, base_ok, seen, stack):
+def _axis_interlocking(contacts, a, n_parts, lost, away_from_key, base_ok, seen, stack):
     """The interlocking test on axis a of A_i, whose new piece has contacts both ways along a. When
     no contact of R was lost, the old nodes' graph is A_(i-1)'s, so where that was strongly connected
     (without the key), the new node's contacts (with nodes other than the key) decide."""
     if not lost:
         if base_ok[a, 0]:
             return True
-        if base_ok[a, 1]:
-            has_in = has_out = False
-            for q in range(1, n_parts):
-                has_in |= counts[a, q, new] > 0
-                has_out |= counts[a, new, q] > 0
-            if has_in and has_out:
-                return True
-    return _strongly_connected(counts, a, n_parts, -1, -1, seen, stack) or _strongly_connected(
-        counts, a, n_parts, 0, -1, seen, stack
+        if base_ok[a, 1] and (away_from_key >> a) & 1 and (away_from_key >> (3 + a)) & 1:
+            return True
+    return _strongly_connected(contacts, a, n_parts, -1, -1, seen, stack) or _strongly_connected(
+        contacts, a, n_parts, 0, -1, seen, stack
     )
 
 
 @njit(cache=True)
-def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, base, base_ok, seen, stack, stamp):
-    """The interlocking test on A_i, whose contact counts are A_(i-1)'s (`base`) with the chunk's
-    contacts moved; `base` is changed for the test and restored, which is cheaper than a copy."""
+def _interlocking(chunk, n, nbr, part_of, r_node, in_chunk, contacts, base_ok, seen, stack, stamp):
+    """The interlocking test on A_i, whose contacts are A_(i-1)'s with the chunk's moved from R to the
+    new piece; `contacts` is changed for the test and restored, which is cheaper than a copy."""
     if not _held_every_way(chunk, n, nbr, in_chunk, stamp):
         return False
     n_parts = r_node + 1
-    lost = _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, base, stamp, 1)
+    lost, away_from_key = _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, contacts, stamp, 1)
     ok = True
     for a in range(3):
-        if not _axis_interlocking(base, a, n_parts, r_node - 1, lost, base_ok, seen, stack):
+        if not _axis_interlocking(contacts, a, n_parts, lost, away_from_key, base_ok, seen, stack):
             ok = False
             break
-    _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, base, stamp, -1)
+    _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, contacts, stamp, -1)
     return ok
 
 
@@ -377,7 +492,7 @@ def check_chunk(chunk, n, piece, topo, node, removal_path, full, scratch, stamp)
     the first failure and returns 0 for any rejected chunk. The chunk's voxels hold `stamp` in
     scratch's `in_chunk`."""
     nbr, _, line, _, coords, index = topo
-    part_of, _, ray_r, base, base_ok, _ = node
+    part_of, _, ray_r, contacts, base_ok, _ = node
     in_chunk, mark, owner, nxt, groups, line_count, seen, stack, visited, off_queue = scratch
     r_node = piece
     result = 0
@@ -386,7 +501,7 @@ def check_chunk(chunk, n, piece, topo, node, removal_path, full, scratch, stamp)
         return 0
     # Interlocking before connectivity: its first test rejects most chunks for a few loads each.
     if piece == 1 or _interlocking(
-        chunk, n, nbr, part_of, r_node, in_chunk, base, base_ok, seen, stack, stamp
+        chunk, n, nbr, part_of, r_node, in_chunk, contacts, base_ok, seen, stack, stamp
     ):
         result |= INTERLOCKING
     elif not full:
@@ -403,10 +518,12 @@ def check_chunk(chunk, n, piece, topo, node, removal_path, full, scratch, stamp)
 
 
 @njit(cache=True)
-def scratch_arrays(n_vox, n_lines, n_parts, dims):
+def scratch_arrays(n_vox, n_lines, n_parts, dims, removal_path):
     """Work arrays of `check_chunk`: (in_chunk, mark, owner, nxt, groups, line_count, seen, stack, visited,
-    off_queue). Stamped arrays start at 0 and stamps at 1, so they never need clearing."""
-    n_off = (2 * dims[0] + 1) * (2 * dims[1] + 1) * (2 * dims[2] + 1)
+    off_queue). Stamped arrays start at 0 and stamps at 1, so they never need clearing. The offset
+    arrays of path removal (one entry per translation within the canvas: 357,911 at 35^3) are made
+    only for it."""
+    n_off = (2 * dims[0] + 1) * (2 * dims[1] + 1) * (2 * dims[2] + 1) if removal_path else 1
     return (
         np.zeros(n_vox, np.int64),
         np.zeros(n_vox, np.int64),
@@ -426,7 +543,7 @@ def check_chunks(topo, labels, piece, chunks, removal_path):
     """Every check on every given chunk (no early exit): int32 bitmask per chunk. For testing."""
     nbr, ray, _, n_lines, _, index = topo
     node = prepare_node(nbr, ray, labels, piece)
-    scratch = scratch_arrays(labels.shape[0], n_lines, piece + 1, index.shape)
+    scratch = scratch_arrays(labels.shape[0], n_lines, piece + 1, index.shape, removal_path)
     in_chunk = scratch[0]
     out = np.zeros(chunks.shape[0], np.int32)
     n = chunks.shape[1]

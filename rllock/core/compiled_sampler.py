@@ -363,7 +363,7 @@ def _sample_into(
     if seeds.shape[0] == 0:
         return 0, 0
     n_vox = labels.shape[0]
-    scratch = scratch_arrays(n_vox, n_lines, piece + 1, index.shape)
+    scratch = scratch_arrays(n_vox, n_lines, piece + 1, index.shape, removal_path)
     in_chunk = scratch[0]
     front_mark = np.zeros(n_vox, np.int64)
     front = np.empty(n_vox, np.int32)
