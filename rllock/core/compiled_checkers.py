@@ -99,9 +99,10 @@ def _contacts(nbr, part_of, n_parts):
     the square of the piece count. Nodes: placed pieces 0..i-2, the new piece i-1, R = i. Returns
     (r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj): r_out[a, q] counts the
     contacts R -> q along +a and r_in[a, q] those q -> R (new_out and new_in the same for the new piece,
-    zero until a chunk's contacts are moved in, and the only place of those between it and R); the contacts between placed pieces, which no chunk
-    changes, are adjacency lists without repeats: the heads of p's edges along +a are
-    out_adj[out_start[a, p]:out_start[a, p + 1]] and the tails of the edges into p in_adj likewise."""
+    zero until a chunk's contacts are moved in, and the only place of those between it and R); the
+    contacts between placed pieces, which no chunk changes, are adjacency lists without repeats: the
+    heads of p's edges along +a are out_adj[out_start[a, p]:out_start[a, p + 1]] and the tails of the
+    edges into p in_adj likewise."""
     r_node = n_parts - 1
     r_out = np.zeros((3, n_parts), np.int32)
     r_in = np.zeros((3, n_parts), np.int32)
