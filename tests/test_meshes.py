@@ -1,4 +1,5 @@
-"""Meshes both ways: closed .stl/.obj models to voxel shapes, and voxel pieces to watertight meshes."""
+"""Meshes both ways: .stl/.obj models to voxel shapes (open ones by winding numbers), voxel pieces to
+watertight meshes."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from rllock.core.meshes import (
     voxelize_mesh,
 )
 from rllock.core.shapes import load_shape
+from rllock.core.winding import build_tree, winding_numbers, winding_numbers_exact
 from rllock.errors import RLLockError
 
 
@@ -300,10 +302,64 @@ def test_holes_in_a_scanned_surface_are_closed_with_flat_caps(tmp_path, caplog):
     assert "2 hole(s)" in caplog.text
 
 
+def _holed_ball() -> trimesh.Trimesh:
+    """An icosphere with one face in ten removed, scattered: holes that share vertices, which no flat
+    cap closes."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    keep = np.random.default_rng(0).random(len(ball.faces)) > 0.1
+    return trimesh.Trimesh(ball.vertices, ball.faces[keep], process=False)
+
+
+def test_winding_numbers_of_the_cluster_tree_match_the_exact_sum():
+    """The tree's dipole approximation against the sum over every triangle, for an open surface and for
+    two overlapping spheres (self-intersecting), at points inside, outside and near the surface."""
+    two = trimesh.util.concatenate(
+        [trimesh.creation.icosphere(3, 1.0), trimesh.creation.icosphere(3, 0.8).apply_translation([1, 0, 0])]
+    )
+    rng = np.random.default_rng(1)
+    for mesh in (_holed_ball(), two):
+        points = rng.uniform(mesh.bounds[0] - 0.3, mesh.bounds[1] + 0.3, (400, 3))
+        exact = winding_numbers_exact(mesh.vertices, mesh.faces, points)
+        fast = winding_numbers(build_tree(mesh.vertices, mesh.faces), points)
+        assert np.abs(fast - exact).max() < 0.02
+        assert (exact > 0.5).sum() > 50 and (exact < 0.5).sum() > 50
+    # Where the two spheres overlap the winding number is 2: still inside.
+    assert winding_numbers(build_tree(two.vertices, two.faces), np.array([[0.6, 0, 0]]))[0] > 1.9
+
+
+def test_meshes_that_are_not_closed_fill_where_their_winding_number_is_above_a_half(tmp_path, caplog):
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ball.export(tmp_path / "ball.obj")
+    _holed_ball().export(tmp_path / "holed.obj")
+    with caplog.at_level(logging.WARNING):
+        holed = load_shape(str(tmp_path / "holed.obj"), resolution=10)
+    assert "open edges): inside and outside decided by winding numbers" in caplog.text
+    closed = load_shape(str(tmp_path / "ball.obj"), resolution=10)
+    assert holed.shape == closed.shape and (holed != closed).sum() <= 0.03 * closed.sum()
+    # A fin on a closed box (an edge of three faces, a sheet with open edges) fills nothing: the model
+    # spans -0.5..3 along each axis, so at resolution 7 the unit box is exactly 2^3 voxels (and the shape
+    # is cropped to its voxels).
+    _finned().export(tmp_path / "fin.stl")
+    fin = load_shape(str(tmp_path / "fin.stl"), resolution=7)
+    assert fin.shape == (2, 2, 2) and fin.all()
+
+
+def _two_sheets() -> trimesh.Trimesh:
+    """Two flat squares at right angles that share one corner: not flat as a whole, open edges that no cap
+    closes (two loops through one vertex), and nothing enclosed."""
+    vertices = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 1, 0), (2, 1, 1), (1, 1, 1)]
+    faces = [(0, 1, 2), (0, 2, 3), (2, 4, 5), (2, 5, 6)]
+    return trimesh.Trimesh(np.array(vertices, float), np.array(faces), process=False)
+
+
 @pytest.mark.parametrize(
     "make,needle",
     [
-        (lambda p: _finned().export(p / "fin.stl"), "not watertight"),
+        (
+            lambda p: _two_sheets().export(p / "sheets.stl"),
+            "has no inside: its open surface encloses no voxel",
+        ),
+        (lambda p: trimesh.creation.box([2, 2, 0]).export(p / "flat.obj"), "is flat"),
         (lambda p: (p / "junk.stl").write_text("this is no mesh"), "no triangle mesh"),
         (lambda p: (p / "empty.obj").write_text(""), "no triangle mesh"),
     ],

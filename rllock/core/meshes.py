@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -58,6 +59,7 @@ from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from rllock.core.winding import build_tree, winding_numbers
 from rllock.errors import RLLockError
 
 DEFAULT_RESOLUTION = 8
@@ -149,6 +151,8 @@ def assembly_meshes(labels: np.ndarray, voxel_size: float = 10.0, gap: float = 0
 
 
 def _load_mesh(path: Path) -> trimesh.Trimesh:
+    """The mesh's triangles with vertices merged by position, its holes capped when they are simple loops
+    (`_capped`); a mesh whose open edges are not is returned open, for the winding numbers to fill."""
     if not path.is_file():
         raise RLLockError(f"no such file: {path}")
     try:
@@ -162,14 +166,14 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
     # coordinates or normal change, which leaves the surface open along every seam until the copies are
     # merged by position (a mesh without texture or normals merges them so on load).
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+    extent = np.asarray(mesh.extents, dtype=float)
+    if extent.min() <= 1e-9 * extent.max():
+        raise RLLockError(f"mesh {path} is flat (no thickness along one axis): it has no inside to fill")
     if mesh.is_watertight:
         return mesh
     capped, holes = _capped(mesh)
     if capped is None or not capped.is_watertight:
-        raise RLLockError(
-            f"mesh {path} is not watertight: filling its inside needs a closed surface, and its open edges "
-            "do not form holes that flat caps can close"
-        )
+        return mesh
     log.warning("mesh %s had %d hole(s) in its surface: closed each with a flat cap", path, holes)
     return capped
 
@@ -211,23 +215,62 @@ def _capped(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh | None, int]:
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces)), holes
 
 
-def _solid(mesh: trimesh.Trimesh, path: Path) -> m3.Manifold:
+def _solid(mesh: trimesh.Trimesh) -> m3.Manifold | None:
+    """The mesh as a manifold3d solid, or None when it is not a closed 2-manifold (open, or with edges of
+    more than two faces)."""
+    if not mesh.is_watertight:
+        return None
     solid = m3.Manifold(
         m3.Mesh(
             vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
             tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
         )
     )
-    if solid.status() != m3.Error.NoError:
-        raise RLLockError(f"mesh {path} is not a closed manifold surface ({solid.status().name})")
-    return solid
+    return solid if solid.status() == m3.Error.NoError else None
 
 
-def _frame(solid: m3.Manifold, resolution: int) -> tuple[np.ndarray, float, np.ndarray]:
-    """(origin, pitch, dims): the voxel grid centred on the solid, `resolution` voxels along its longest
-    side."""
-    box = np.asarray(solid.bounding_box(), dtype=float)
-    lo, hi = box[:3], box[3:]
+class _Inside(NamedTuple):
+    """What decides inside and outside: the bounds of the model and, for the points (xs[i], ys[j], z) of
+    one layer, whether each is inside (bool[len(xs), len(ys)])."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    layer: Callable[[float, np.ndarray, np.ndarray], np.ndarray]
+    closed: bool  # decided by the closed solid's cross-sections, not by winding numbers
+
+
+def _inside(mesh: trimesh.Trimesh, path: Path) -> _Inside:
+    """A closed mesh decides by its solid's cross-sections (exact and fast); any other by generalized
+    winding numbers above 1/2 (`rllock.core.winding`), which tolerate open seams, holes and
+    self-intersections."""
+    solid = _solid(mesh)
+    if solid is not None:
+        box = np.asarray(solid.bounding_box(), dtype=float)
+
+        def sliced(z: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+            return _inside_rows(solid.slice(z).to_polygons(), xs, ys)
+
+        return _Inside(box[:3], box[3:], sliced, True)
+    tree = build_tree(mesh.vertices, mesh.faces)
+    open_edges = int((np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1] == 1).sum())
+    log.warning(
+        "mesh %s is not closed (%d open edges): inside and outside decided by winding numbers",
+        path,
+        open_edges,
+    )
+
+    def wound(z: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        gx, gy = np.meshgrid(xs, ys, indexing="ij")
+        points = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
+        return (winding_numbers(tree, points) > 0.5).reshape(gx.shape)
+
+    lo, hi = np.asarray(mesh.bounds, dtype=float)
+    return _Inside(lo, hi, wound, False)
+
+
+def _frame(lo: np.ndarray, hi: np.ndarray, resolution: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """(origin, pitch, dims): the voxel grid centred on the box lo..hi, `resolution` voxels along its
+    longest side."""
     extent = hi - lo
     pitch = float(extent.max()) / resolution
     if pitch <= 0:
@@ -276,13 +319,11 @@ class _Samples(NamedTuple):
     across: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def _sample(solid: m3.Manifold, resolution: int) -> _Samples:
-    """The solid sampled at SUBSAMPLES^3 evenly spread points per voxel.
-
-    Layers of points are tested against the solid's cross-section at their height: fast and robust,
-    where casting a ray per point is slow on meshes of many triangles.
-    """
-    origin, pitch, dims = _frame(solid, resolution)
+def _sample(inside: _Inside, resolution: int) -> _Samples:
+    """The model sampled at SUBSAMPLES^3 evenly spread points per voxel, a layer at a time (`_Inside`):
+    a closed solid's cross-section at the layer's height is fast and robust, where casting a ray per
+    point is slow on meshes of many triangles."""
+    origin, pitch, dims = _frame(inside.lo, inside.hi, resolution)
     k = SUBSAMPLES
     # A tiny irrational nudge keeps sample points off faces that lie exactly on a plane of samples (such
     # as the plane of centres halfway between grid planes), where inside and outside would be a tie.
@@ -298,7 +339,7 @@ def _sample(solid: m3.Manifold, resolution: int) -> _Samples:
     )
     below = np.zeros((k * nx, k * ny), dtype=bool)
     for iz, z in enumerate(axes[2]):
-        layer = _inside_rows(solid.slice(z).to_polygons(), axes[0], axes[1])
+        layer = inside.layer(float(z), axes[0], axes[1])
         cell = iz // k
         overlap[:, :, cell] += layer.reshape(nx, k, ny, k).sum(axis=(1, 3))
         if iz % k == k // 2:
@@ -371,9 +412,9 @@ def _bridge(filled: np.ndarray, samples: _Samples) -> np.ndarray:
     return grid.reshape(filled.shape)
 
 
-def _voxels(solid: m3.Manifold, resolution: int) -> np.ndarray:
-    """The voxels of the solid (the module docstring gives the rule), before any part is dropped."""
-    samples = _sample(solid, resolution)
+def _voxels(inside: _Inside, resolution: int) -> np.ndarray:
+    """The voxels of the model (the module docstring gives the rule), before any part is dropped."""
+    samples = _sample(inside, resolution)
     # The module docstring says why more than half the sub-samples never thickens a model.
     return _bridge(samples.centre | (2 * samples.overlap > SUBSAMPLES**3), samples)
 
@@ -387,16 +428,22 @@ def largest_component(grid: np.ndarray) -> np.ndarray:
 
 
 def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray:
-    """A closed `.stl`/`.obj` mesh as a boolean grid [x, y, z] (mesh axes kept), at most `resolution`
-    voxels along its longest side, reduced to its largest 6-connected part with a warning; refused
-    when that drops more than MAX_DROPPED of the voxels."""
+    """A `.stl`/`.obj` mesh as a boolean grid [x, y, z] (mesh axes kept), at most `resolution` voxels
+    along its longest side, reduced to its largest 6-connected part with a warning; refused when that
+    drops more than MAX_DROPPED of the voxels, or when the mesh has no inside. A mesh that is not closed
+    is filled where its winding numbers are above 1/2 (`_inside`)."""
     resolution = DEFAULT_RESOLUTION if resolution is None else resolution
     if resolution < 1:
         raise RLLockError(f"the resolution must be at least 1 voxel, got {resolution}")
     path = Path(path)
-    solid = _solid(_load_mesh(path), path)
-    grid = _voxels(solid, resolution)
+    inside = _inside(_load_mesh(path), path)
+    grid = _voxels(inside, resolution)
     if not grid.any():
+        if not inside.closed:
+            raise RLLockError(
+                f"mesh {path} has no inside: its open surface encloses no voxel's centre at resolution "
+                f"{resolution} (winding numbers below 1/2)"
+            )
         raise RLLockError(f"mesh {path} fills no voxel at resolution {resolution}: try a higher resolution")
     kept = largest_component(grid)
     total = int(grid.sum())
@@ -404,7 +451,7 @@ def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray
     if dropped > MAX_DROPPED * total:
         raise RLLockError(
             f"mesh {path} at resolution {resolution} falls apart: its largest connected part keeps "
-            f"{total - dropped} of {total} voxels; {_resolution_hint(solid, resolution)}"
+            f"{total - dropped} of {total} voxels; {_resolution_hint(inside, resolution)}"
         )
     if dropped:
         log.warning(
@@ -413,15 +460,17 @@ def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray
             resolution,
             dropped,
             total,
-            _resolution_hint(solid, resolution),
+            _resolution_hint(inside, resolution),
         )
     return kept
 
 
-def _resolution_hint(solid: m3.Manifold, resolution: int) -> str:
+def _resolution_hint(inside: _Inside, resolution: int) -> str:
     """The lowest resolution above `resolution` (up to twice it) at which the voxels form one connected
-    part, as advice."""
+    part, as advice. Winding numbers cost too much to try them all: then only the advice to go higher."""
+    if not inside.closed:
+        return "a higher --resolution may keep its parts together"
     for higher in range(resolution + 1, 2 * resolution + 1):
-        if ndimage.label(_voxels(solid, higher))[1] == 1:
+        if ndimage.label(_voxels(inside, higher))[1] == 1:
             return f"--resolution {higher} keeps its parts together"
     return f"no resolution up to {2 * resolution} keeps them together (the model may have separate parts)"
