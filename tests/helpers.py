@@ -168,3 +168,32 @@ def run_cli(*args: str, timeout: float = 300):
         [sys.executable, "-m", "orchestration.cli", *args], capture_output=True, text=True, timeout=timeout
     )
     return proc.returncode, proc.stdout, proc.stderr
+
+
+def reference_verdict(labels: np.ndarray, removal: str) -> tuple[bool, int | None, str | None, list]:
+    """(valid, failed stage, failed check, disassembly) by the reference checkers applied to every stage
+    as docs/checkers.md says, plainly: what `rllock.core.verifier` must agree with."""
+    from dataclasses import asdict
+
+    from rllock.core.verifier import Move, _runs
+
+    k = int(labels.max())
+    cells = {j: frozenset(ref.voxel(v) for v in np.argwhere(labels == j)) for j in range(1, k + 1)}
+    disassembly = []
+    for i in range(1, k):
+        parts = [cells[j] for j in range(1, i + 1)]
+        rest = frozenset().union(*(cells[j] for j in range(i + 1, k + 1)))
+        if not all(ref.is_connected(p) for p in parts) or not ref.is_connected(rest):
+            return False, i, "connected", []
+        if removal == "straight":
+            exit_ = ref.straight_exit(parts[-1], rest)
+            moves = None if exit_ is None else [Move(ref.DIRECTION_NAMES[exit_[0]], exit_[1])]
+        else:
+            path = ref.path_exit(parts[-1], rest)
+            moves = None if path is None else _runs(path)
+        if moves is None:
+            return False, i, "removable", []
+        if len(parts) >= 2 and not ref.is_interlocking([*parts, rest]):
+            return False, i, "interlocking", []
+        disassembly.append({"piece": i, "moves": [asdict(m) for m in moves]})
+    return True, None, None, disassembly

@@ -190,3 +190,60 @@ def test_verify_json_answers_bad_input_with_one_json_object(tmp_path):
             "error": err.strip().removeprefix("rllock: error: "),
         }
         assert needle in json.loads(out)["error"]
+
+
+def _variants(labels: np.ndarray, rng: np.random.Generator, count: int):
+    """`labels` and `count` corruptions of it: two pieces' ids swapped (the order changes, so stages fail
+    every way), or a voxel given to a neighbouring piece (pieces and rests may fall apart)."""
+    yield labels
+    k = int(labels.max())
+    for t in range(count):
+        out = labels.copy()
+        if t % 2 == 0:
+            a, b = rng.choice(np.arange(1, k + 1), 2, replace=False)
+            out[labels == a], out[labels == b] = b, a
+        else:
+            filled = np.argwhere(labels > 0)
+            v = filled[rng.integers(len(filled))]
+            for d in rng.permutation(len(ref.DIRECTIONS)):
+                u = v + ref.DIRECTIONS[d]
+                if (
+                    np.all(u >= 0)
+                    and np.all(u < labels.shape)
+                    and labels[tuple(u)] not in (0, labels[tuple(v)])
+                ):
+                    out[tuple(v)] = labels[tuple(u)]
+                    break
+        if len(np.unique(out[out > 0])) == k:  # ids still 1..K: a verdict, not a bad-input error
+            yield out
+
+
+EVERY_CHECK = {None, "connected", "removable", "interlocking"}
+
+
+@pytest.mark.parametrize(
+    "shape,k,removal,seen",
+    [
+        ("cube4", 7, "straight", EVERY_CHECK),
+        ("cube5", 13, "path", EVERY_CHECK),
+        ("desia-bunny", 40, "straight", EVERY_CHECK - {"interlocking"}),
+    ],
+)
+def test_verdicts_equal_the_reference_checkers_stage_by_stage(shape, k, removal, seen, data):
+    """The verifier's verdicts, disassembly moves included, are those of the reference checkers applied to
+    every stage plainly, on solver assemblies, published ones and corruptions of both that fail at every
+    kind of stage and check."""
+    from helpers import reference_verdict
+
+    task = make_task(shape, k, removal)
+    rng = np.random.default_rng(k)
+    assemblies = [f.labels for f, _ in zip(search(task, seed=2, time_limit=60), range(2))]
+    assemblies.append(read_puz_labels(data / "published" / "Cube_4x4x4_K9.puz"))
+    checks = set()
+    for base in assemblies:
+        for labels in _variants(base, rng, 12):
+            verdict = verify_labels(labels, removal)
+            got = (verdict.valid, verdict.failed_stage, verdict.failed_check, verdict.disassembly)
+            assert got == reference_verdict(labels, removal)
+            checks.add(verdict.failed_check)
+    assert checks == seen
