@@ -1,6 +1,10 @@
 from __future__ import annotations
 
 import os
+import shutil
+import socket
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,3 +29,47 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("ray"):
             item.add_marker(pytest.mark.xdist_group("ray"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def cluster(monkeypatch) -> Iterator[tuple]:
+    """(the Cluster, the Jobs API's address, a function that adds a worker node of one CPU), torn down
+    whatever the test does. Each worker node has a temporary folder of its own, as separate machines
+    would: nodes that share one delete each other's unpacked job folders (Ray keeps them per node)."""
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    # `ray job stop` sends SIGTERM, then SIGKILL after this many seconds (Ray's default: 3).
+    monkeypatch.setenv("RAY_JOB_STOP_WAIT_TIME_S", "60")
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    from ray.cluster_utils import Cluster
+
+    port = _free_port()
+    head = {
+        "num_cpus": 0,
+        "node_ip_address": "127.0.0.1",
+        "include_dashboard": True,
+        "dashboard_host": "127.0.0.1",
+        "dashboard_port": port,
+        # The head declares a silent node dead after 3 missed health checks a second apart, not Ray's
+        # default 5 of 3 s each: the same path, in a test-sized time.
+        "_system_config": {"health_check_period_ms": 1000, "health_check_failure_threshold": 3},
+    }
+    folders: list[str] = []
+
+    def add_worker():
+        # Ray's socket paths must stay under 108 bytes: pytest's tmp_path is too deep for them.
+        folders.append(tempfile.mkdtemp(prefix="rlw", dir="/tmp"))
+        return created.add_node(num_cpus=1, node_ip_address="127.0.0.1", temp_dir=folders[-1])
+
+    created = Cluster(initialize_head=True, head_node_args=head)
+    try:
+        yield created, f"http://127.0.0.1:{port}", add_worker
+    finally:
+        created.shutdown()
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)

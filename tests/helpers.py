@@ -197,3 +197,11 @@ def reference_verdict(labels: np.ndarray, removal: str) -> tuple[bool, int | Non
             return False, i, "interlocking", []
         disassembly.append({"piece": i, "moves": [asdict(m) for m in moves]})
     return True, None, None, disassembly
+
+
+def actor_nodes(api: str, class_name: str = "SelfPlayActor") -> set[str]:
+    """The nodes where actors of `class_name` are alive, from Ray's state API."""
+    from ray.util.state import list_actors
+
+    alive = list_actors(address=api, filters=[("class_name", "=", class_name), ("state", "=", "ALIVE")])
+    return {a.node_id for a in alive}

@@ -6,27 +6,19 @@ addresses). A worker node is killed mid-run, a new one joins, and `ray job stop`
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import sys
-import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from helpers import tiny_flags
+from helpers import actor_nodes, tiny_flags
 
 from rllock.config import SelfPlayConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _steps(logdir: Path) -> list[int]:
@@ -43,54 +35,8 @@ def _wait_for(what: str, condition: Callable[[], object], timeout: float, logs: 
     pytest.fail(f"timed out waiting for {what}; the job's log:\n{logs()[-6000:]}")
 
 
-@pytest.fixture
-def cluster(monkeypatch) -> Iterator[tuple]:
-    """(the Cluster, the Jobs API's address, a function that adds a worker node of one CPU), torn down
-    whatever the test does. Each worker node has a temporary folder of its own, as separate machines
-    would: nodes that share one delete each other's unpacked job folders (Ray keeps them per node)."""
-    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    # `ray job stop` sends SIGTERM, then SIGKILL after this many seconds (Ray's default: 3).
-    monkeypatch.setenv("RAY_JOB_STOP_WAIT_TIME_S", "60")
-    monkeypatch.delenv("RAY_ADDRESS", raising=False)
-    from ray.cluster_utils import Cluster
-
-    port = _free_port()
-    head = {
-        "num_cpus": 0,
-        "node_ip_address": "127.0.0.1",
-        "include_dashboard": True,
-        "dashboard_host": "127.0.0.1",
-        "dashboard_port": port,
-        # The head declares a silent node dead after 3 missed health checks a second apart, not Ray's
-        # default 5 of 3 s each: the same path, in a test-sized time.
-        "_system_config": {"health_check_period_ms": 1000, "health_check_failure_threshold": 3},
-    }
-    folders: list[str] = []
-
-    def add_worker():
-        # Ray's socket paths must stay under 108 bytes: pytest's tmp_path is too deep for them.
-        folders.append(tempfile.mkdtemp(prefix="rlw", dir="/tmp"))
-        return created.add_node(num_cpus=1, node_ip_address="127.0.0.1", temp_dir=folders[-1])
-
-    created = Cluster(initialize_head=True, head_node_args=head)
-    try:
-        yield created, f"http://127.0.0.1:{port}", add_worker
-    finally:
-        created.shutdown()
-        for folder in folders:
-            shutil.rmtree(folder, ignore_errors=True)
-
-
 def _run(command: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
-
-
-def _actor_nodes(api: str, class_name: str = "SelfPlayActor") -> set[str]:
-    """The nodes where actors of `class_name` are alive, from Ray's state API."""
-    from ray.util.state import list_actors
-
-    alive = list_actors(address=api, filters=[("class_name", "=", class_name), ("state", "=", "ALIVE")])
-    return {a.node_id for a in alive}
 
 
 @pytest.mark.slow
@@ -124,13 +70,13 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
 
     # Placement: an actor on each worker node, the replay buffer on the driver's node.
     worker_ids = {w.node_id for w in workers}
-    _wait_for("a self-play actor on each worker node", lambda: _actor_nodes(api) == worker_ids, 120, logs)
+    _wait_for("a self-play actor on each worker node", lambda: actor_nodes(api) == worker_ids, 120, logs)
     driver = client.get_job_info(job).driver_node_id
     assert driver == ray_cluster.head_node.node_id
     # The state API lists an actor once its process is up, which on 2 busy cores may come after the workers'.
     _wait_for(
         "the replay buffer on the driver's node",
-        lambda: _actor_nodes(api, "ReplayBuffer") == {driver},
+        lambda: actor_nodes(api, "ReplayBuffer") == {driver},
         60,
         logs,
     )
@@ -145,7 +91,7 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
 
     # A node joins: the actor that lost its node restarts there.
     joined = add_worker()
-    _wait_for("the actor restarted on the new node", lambda: joined.node_id in _actor_nodes(api), 60, logs)
+    _wait_for("the actor restarted on the new node", lambda: joined.node_id in actor_nodes(api), 60, logs)
 
     # `ray job stop`: SIGTERM, a checkpoint at the signal, the resume command.
     before = _steps(logdir)[-1]

@@ -20,6 +20,7 @@ from rllock.files.render import (
     disassembly_steps,
     draw_png,
     piece_colors,
+    touching_pieces,
     write_gif,
     write_html,
     write_picture,
@@ -49,11 +50,23 @@ def _colourful_pixels(image: Image.Image) -> int:
     return int(((hsv[:, 1] > 80) & (hsv[:, 2] > 60)).sum())
 
 
-def test_piece_colours_are_distinct():
-    colors = piece_colors(80)
-    distances = np.linalg.norm(colors[:, None] - colors[None], axis=-1)
-    assert distances[np.triu_indices(80, 1)].min() > 0.02
+def test_piece_colours_are_distinct_and_touching_pieces_never_share_one():
+    slabs = (np.arange(216) * 24 // 216 + 1).reshape(6, 6, 6)
+    colors = piece_colors(slabs)
+    assert len(colors) == 24
+    assert np.linalg.norm(colors[:, None] - colors[None], axis=-1)[np.triu_indices(24, 1)].min() > 0.02
     assert np.linalg.norm(colors[1:8, None] - colors[None, 1:8], axis=-1)[np.triu_indices(7, 1)].min() > 0.2
+    # 1,728 pieces of 2x2x2 on a 24^3 cube, numbered in a random order: each piece touches up to 6 others,
+    # and none of them has its colour, which are 24 distinct ones used about evenly.
+    blocks = np.arange(12**3).reshape(12, 12, 12)
+    order = np.random.default_rng(0).permutation(12**3) + 1
+    labels = order[blocks].repeat(2, 0).repeat(2, 1).repeat(2, 2)
+    colors = piece_colors(labels)
+    assert len(colors) == 12**3 and len(np.unique(colors, axis=0)) == 24
+    for i, touching in enumerate(touching_pieces(labels)):
+        assert 3 <= len(touching) <= 6
+        assert all(np.linalg.norm(colors[i] - colors[j]) > 0.02 for j in touching)
+    assert np.bincount(np.unique(colors, axis=0, return_inverse=True)[1].ravel()).min() > 12**3 / 24 / 2
 
 
 def test_png_shows_every_piece(tmp_path):

@@ -94,6 +94,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     written: list[Path] = []
     stats = SearchStats()
     start = time.perf_counter()
+    joined = args.address is not None and _join_ray(args.address)
     try:
         with graceful_stop() as stop:
             _solve_into(task, args, out, written, stats, stop, guide)
@@ -102,6 +103,11 @@ def cmd_solve(args: argparse.Namespace) -> int:
         if not is_interrupt(exc):
             raise
         stopped = True
+    finally:
+        if joined:
+            import ray
+
+            ray.shutdown()
     if stopped:
         sys.stdout.write(kept("solve", len(written), out))
         return INTERRUPTED
@@ -114,6 +120,17 @@ def cmd_solve(args: argparse.Namespace) -> int:
         f"K={task.pieces} in {elapsed:.2f} s: {elapsed / len(written):.3f} s per valid assembly -> {out}\n"
     )
     return 0
+
+
+def _join_ray(address: str) -> bool:
+    """Join the Ray cluster at `address` for the search workers; a cluster that cannot be reached is one
+    line. True when this process connected (and so disconnects at the end)."""
+    from orchestration.pool import start_ray
+
+    try:
+        return start_ray(address)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise RLLockError(f"cannot join the Ray cluster at {address}: {str(exc).splitlines()[0]}") from None
 
 
 def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], stats, stop, guide) -> None:
@@ -149,10 +166,11 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
         common = dict(
             time_limit=args.time_limit, config=config, stats=stats, stop=stop, report=report, guide=guide
         )
-        if args.workers == 1:
+        on_ray = args.address is not None
+        if args.workers == 1 and not on_ray:
             found = search(task, seed=args.seed, **common)
         else:
-            found = portfolio_search(task, seed=args.seed, workers=args.workers, **common)
+            found = portfolio_search(task, seed=args.seed, workers=args.workers, on_ray=on_ray, **common)
         for f in found:
             folder = out / f"assembly_{len(written) + 1:03d}"
             write_assembly(
@@ -164,7 +182,8 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
                     "name": "search",
                     **asdict(config),
                     **({} if guide is None else {"guide": guide.source}),
-                    **({} if args.workers == 1 else {"workers": args.workers}),
+                    **({} if args.workers == 1 and not on_ray else {"workers": args.workers}),
+                    **({"ray": True} if on_ray else {}),
                 },
                 seed=f.seed,
                 timings={"seconds": round(f.seconds, 4), "node_expansions": f.expansions},
@@ -300,6 +319,12 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         default=1,
         help="searches run at once, one process (core) each, from different seeds; the first assemblies "
         "found are kept (default %(default)s: the plain search, reproducible by --seed)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="run the --workers searches as Ray actors (one CPU each) on the Ray cluster at this address "
+        "(host:port of its head, or auto) instead of on this machine",
     )
     p.set_defaults(func=cmd_solve)
 

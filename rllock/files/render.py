@@ -26,19 +26,59 @@ from rllock.core.verifier import Verdict, validate_labels
 
 # Flat shading by face direction (+x, -x, +y, -y, +z, -z): enough to read the shape without a light model.
 _SHADE = (0.82, 0.62, 0.72, 0.9, 1.0, 0.55)
+# The exploded view numbers every piece up to this many; beyond, numbers would cover the pieces, and only
+# the key is marked.
+MAX_NUMBERED = 60
 # GIF frames: at most this many per move, however many unit steps the move has.
 _FRAMES_PER_MOVE = 3
 
 
-def piece_colors(k: int) -> np.ndarray:
+# Up to this many pieces each gets a colour of its own; more share DISTINCT colours so that no two touching
+# pieces do (`piece_colors`): hundreds of hues cannot be told apart, a few dozen can.
+DISTINCT = 24
+
+
+def _golden_colors(k: int) -> np.ndarray:
     """K distinct RGB colours in [0, 1]: hues spaced by the golden ratio, alternating in brightness,
-    so that neighbours in the removal order never look alike; the key (first) is red."""
+    so that neighbours in the removal order never look alike; the first is red."""
     colors = []
     for i in range(k):
         hue = (i * 0.618033988749895) % 1.0
         sat, val = ((0.75, 0.95), (0.55, 0.8), (0.9, 0.7))[i % 3]
         colors.append(colorsys.hsv_to_rgb(hue, sat, val))
     return np.asarray(colors)
+
+
+def touching_pieces(labels: np.ndarray) -> list[set[int]]:
+    """For each piece 1..K (index 0..K-1), the pieces whose voxels share a face with its voxels."""
+    k = int(labels.max())
+    out: list[set[int]] = [set() for _ in range(k)]
+    for axis in range(3):
+        a = np.moveaxis(labels, axis, 0)
+        p, q = a[:-1].ravel(), a[1:].ravel()
+        touching = (p > 0) & (q > 0) & (p != q)
+        for i, j in np.unique(np.stack([p[touching], q[touching]], axis=1), axis=0).tolist():
+            out[i - 1].add(j - 1)
+            out[j - 1].add(i - 1)
+    return out
+
+
+def piece_colors(labels: np.ndarray) -> np.ndarray:
+    """An RGB colour in [0, 1] per piece 1..K of a label grid, the key red. Up to DISTINCT pieces, all
+    distinct; beyond, DISTINCT colours given greedily in removal order, each piece the first colour after
+    its own turn in the cycle that no piece it touches has yet (the least used among them when all are),
+    so that touching pieces differ and the colours are used evenly."""
+    k = int(labels.max())
+    if k <= DISTINCT:
+        return _golden_colors(k)
+    palette = _golden_colors(DISTINCT)
+    neighbours = touching_pieces(labels)
+    chosen = np.full(k, -1)
+    for i in range(k):
+        taken = np.bincount([chosen[j] for j in neighbours[i] if chosen[j] >= 0], minlength=DISTINCT)
+        turn = (i + np.arange(DISTINCT)) % DISTINCT
+        chosen[i] = turn[int(np.argmin(taken[turn]))]
+    return palette[chosen]
 
 
 def _hex(rgb: np.ndarray) -> str:
@@ -168,7 +208,7 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     """The assembled shape and an exploded view, each piece labelled with its number in the removal order."""
     pieces = pieces_of(labels)
     k = len(pieces)
-    colors = piece_colors(k)
+    colors = piece_colors(labels)
     center = np.asarray(labels.shape) / 2
     # Pieces move out from the centre by their own distance from it: far enough to show every piece.
     spread = np.stack([1.5 * (p.center - center) for p in pieces])
@@ -182,10 +222,13 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     # Labels are drawn over the pieces, so the key is marked even where it is hidden inside.
     _label(ax, pieces[0].center, "key", key=True)
     ex_lo, ex_hi = _scene_bounds(pieces, [Step("", spread, shown)])
-    ax = _axes(fig, (1, 2, 2), ex_lo, ex_hi, "exploded (numbers = removal order)")
+    numbered = k <= MAX_NUMBERED
+    title = "exploded (numbers = removal order)" if numbered else "exploded"
+    ax = _axes(fig, (1, 2, 2), ex_lo, ex_hi, title)
     ax.add_collection3d(_collection(pieces, spread, shown, colors))
     for i, (piece, off) in enumerate(zip(pieces, spread)):
-        _label(ax, piece.center + off, "1 key" if i == 0 else str(i + 1), key=i == 0)
+        if i == 0 or numbered:
+            _label(ax, piece.center + off, "1 key" if i == 0 else str(i + 1), key=i == 0)
     mode = f", {removal} removal" if removal else ""
     fig.suptitle(order_caption(k) + mode, fontsize=11, y=0.98)
     fig.savefig(path)
@@ -211,7 +254,7 @@ def write_picture(labels: np.ndarray, verdict: Verdict, out_dir: Path) -> None:
 def write_gif(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
     """The disassembly animated: the key first, each piece along its verified moves."""
     pieces = pieces_of(labels)
-    colors = piece_colors(len(pieces))
+    colors = piece_colors(labels)
     steps = disassembly_steps(verdict, _FRAMES_PER_MOVE)
     lo, hi = _scene_bounds(pieces, steps)
     fig = Figure(figsize=(5, 5), dpi=80)
@@ -305,7 +348,7 @@ def write_html(labels: np.ndarray, verdict: Verdict, path: str | Path) -> None:
 
     pieces = pieces_of(labels)
     k = len(pieces)
-    colors = piece_colors(k)
+    colors = piece_colors(labels)
     steps = disassembly_steps(verdict)
     meshes = [_mesh_arrays(p) for p in pieces]
     names = [f"piece {i + 1}" + (" (key)" if i == 0 else "") for i in range(k)]

@@ -8,10 +8,15 @@ worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
 limit or when asked. Workers ignore Ctrl-C: the parent's stop reaches them through that event.
+
+The workers are local processes (`_LocalCrew`), or Ray actors of one CPU each on the cluster the caller
+has joined (`_RayCrew`, `rllock solve --address`): the same messages on a Ray queue, and a flag actor for
+the event, which the workers read at most every STOP_POLL_SECONDS.
 """
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import queue as queues
 import signal
@@ -22,6 +27,8 @@ from typing import Any
 from rllock.core.env import Task, assembly_key
 from rllock.search.base import derive_seed
 from rllock.search.solver import PROGRESS_EVERY, Found, SearchConfig, SearchStats, _never, search
+
+log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
@@ -41,7 +48,6 @@ def _work(
     halt: Any,
     worker: int,
 ) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     stats = SearchStats()
     try:
         found = search(
@@ -60,6 +66,11 @@ def _work(
         out.put(("error", worker, f"{type(exc).__name__}: {exc}"))
     finally:
         out.put(("done", worker, stats))
+
+
+def _work_locally(*args: Any) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _work(*args)
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -82,35 +93,28 @@ def portfolio_search(
     stop: Callable[[], bool] = _never,
     report: Callable[[SearchStats], None] | None = None,
     guide: Any = None,
+    on_ray: bool = False,
 ) -> Generator[Found, None, None]:
-    """`solver.search` in `workers` processes (module docstring): yields the distinct assemblies in the
-    order they arrive, `seconds` counted by the parent, until the time limit or `stop()`; the caller
-    stops it by closing the generator (or breaking out of its loop). `stats` sums the workers'."""
+    """`solver.search` in `workers` processes (module docstring), or with `on_ray` in as many Ray actors on
+    the cluster this process has joined: yields the distinct assemblies in the order they arrive, `seconds`
+    counted by the parent, until the time limit or `stop()`; the caller stops it by closing the generator
+    (or breaking out of its loop). `stats` sums the workers'."""
     stats = SearchStats() if stats is None else stats
-    context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
-    out, halt = context.Queue(), context.Event()
-    processes = [
-        context.Process(
-            target=_work,
-            args=(task, worker_seed(seed, i), time_limit, config, guide, out, halt, i),
-            daemon=True,
-        )
-        for i in range(workers)
-    ]
+    jobs = [(task, worker_seed(seed, i), time_limit, config, guide, i) for i in range(workers)]
+    crew: _LocalCrew | _RayCrew = _RayCrew(jobs) if on_ray else _LocalCrew(jobs)
     start = time.monotonic()
     deadline, last = start + time_limit, start
     latest: dict[int, SearchStats] = {}
     done: set[int] = set()
     seen: set[bytes] = set()
     try:
-        for p in processes:
-            p.start()
+        crew.start()
         while len(done) < workers and time.monotonic() < deadline and not stop():
-            try:
-                kind, worker, payload = out.get(timeout=0.2)
-            except queues.Empty:
-                _check_alive(processes, done)
+            message = crew.get(timeout=0.2)
+            if message is None:
+                crew.check_alive(done)
                 continue
+            kind, worker, payload = message
             if kind == "found":
                 key = assembly_key(payload.labels)
                 if key not in seen:
@@ -129,30 +133,157 @@ def portfolio_search(
                     stats.reported = time.monotonic()
                     report(stats)
     finally:
-        halt.set()
-        _drain(processes, out, latest)
+        crew.halt()
+        end = time.monotonic() + JOIN_SECONDS
+        # The queue is read while the workers stop: a worker blocked on a full queue would never exit.
+        while crew.running() and time.monotonic() < end:
+            message = crew.get(timeout=0.1)
+            if message is not None and message[0] in ("progress", "done"):
+                latest[message[1]] = message[2]
+        crew.close()
         merge_stats(list(latest.values()), stats)
 
 
-def _check_alive(processes: list, done: set[int]) -> None:
-    """A worker that died without saying so (killed, out of memory) is an error, not a silent hang."""
-    for i, p in enumerate(processes):
-        if i not in done and p.exitcode is not None and p.exitcode != 0:
-            raise RuntimeError(f"search worker {i} ended with exit code {p.exitcode}")
+class _LocalCrew:
+    """Workers as spawned processes, a multiprocessing queue and event."""
 
+    def __init__(self, jobs: list[tuple]) -> None:
+        context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
+        self.out, self.event = context.Queue(), context.Event()
+        self.processes = [
+            context.Process(target=_work_locally, args=(*job[:5], self.out, self.event, job[5]), daemon=True)
+            for job in jobs
+        ]
 
-def _drain(processes: list, out: Any, latest: dict[int, SearchStats]) -> None:
-    """Wait for the workers to stop, keeping their last stats; those that do not stop are terminated.
-    The queue is read while waiting: a worker blocked on a full queue would never exit."""
-    end = time.monotonic() + JOIN_SECONDS
-    while any(p.is_alive() for p in processes) and time.monotonic() < end:
+    def start(self) -> None:
+        for p in self.processes:
+            p.start()
+
+    def get(self, timeout: float) -> tuple | None:
         try:
-            kind, worker, payload = out.get(timeout=0.1)
+            return self.out.get(timeout=timeout)
         except queues.Empty:
-            continue
-        if kind in ("progress", "done"):
-            latest[worker] = payload
-    for p in processes:
-        if p.is_alive():
-            p.terminate()
-        p.join(timeout=1.0)
+            return None
+
+    def check_alive(self, done: set[int]) -> None:
+        """A worker that died without saying so (killed, out of memory) is an error, not a silent hang."""
+        for i, p in enumerate(self.processes):
+            if i not in done and p.exitcode is not None and p.exitcode != 0:
+                raise RuntimeError(f"search worker {i} ended with exit code {p.exitcode}")
+
+    def halt(self) -> None:
+        self.event.set()
+
+    def running(self) -> bool:
+        return any(p.is_alive() for p in self.processes)
+
+    def close(self) -> None:
+        """Workers that did not stop in time are terminated."""
+        for p in self.processes:
+            if p.is_alive():
+                p.terminate()
+            p.join(timeout=1.0)
+
+
+# How often a Ray worker asks the flag actor whether to stop: a remote call per node expansion would cost
+# more than the expansion.
+STOP_POLL_SECONDS = 0.5
+
+
+class _PolledFlag:
+    """`is_set` of a flag actor, asked at most every STOP_POLL_SECONDS."""
+
+    def __init__(self, flag: Any) -> None:
+        self.flag, self.asked, self.answer = flag, 0.0, False
+
+    def is_set(self) -> bool:
+        import ray
+
+        now = time.monotonic()
+        if not self.answer and now - self.asked >= STOP_POLL_SECONDS:
+            self.asked = now
+            self.answer = ray.get(self.flag.is_set.remote())
+        return self.answer
+
+
+class _RayCrew:
+    """Workers as Ray actors of one CPU each, wherever the cluster places them; a Ray queue and a flag
+    actor. The nodes they run on are logged."""
+
+    def __init__(self, jobs: list[tuple]) -> None:
+        import ray
+        from ray.util.queue import Queue
+
+        self.jobs = jobs
+        self.out = Queue(actor_options={"num_cpus": 0})
+        self.flag = ray.remote(num_cpus=0)(_Flag).remote()
+        worker = ray.remote(num_cpus=1)(_RayWorker)
+        self.actors = [worker.remote() for _ in jobs]
+        self.runs: list[Any] = []
+
+    def start(self) -> None:
+        import ray
+
+        nodes = ray.get([a.node.remote() for a in self.actors])
+        log.info("search workers on %d Ray node(s): %s", len(set(nodes)), ", ".join(nodes))
+        self.runs = [
+            a.run.remote(*job[:5], self.out, self.flag, job[5]) for a, job in zip(self.actors, self.jobs)
+        ]
+
+    def get(self, timeout: float) -> tuple | None:
+        from ray.util.queue import Empty
+
+        try:
+            return self.out.get(timeout=timeout)
+        except Empty:
+            return None
+
+    def check_alive(self, done: set[int]) -> None:
+        """A worker whose actor died (its node lost, killed) is an error, not a silent hang."""
+        import ray
+
+        finished, _ = ray.wait(self.runs, num_returns=len(self.runs), timeout=0)
+        for ref in finished:
+            i = self.runs.index(ref)
+            if i not in done:
+                try:
+                    ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    raise RuntimeError(f"search worker {i} failed on Ray: {type(exc).__name__}") from None
+
+    def halt(self) -> None:
+        self.flag.set.remote()
+
+    def running(self) -> bool:
+        import ray
+
+        return bool(self.runs) and len(ray.wait(self.runs, num_returns=len(self.runs), timeout=0)[1]) > 0
+
+    def close(self) -> None:
+        import ray
+
+        for a in [*self.actors, self.flag]:
+            ray.kill(a)
+        self.out.shutdown()
+
+
+class _Flag:
+    def __init__(self) -> None:
+        self.value = False
+
+    def set(self) -> None:
+        self.value = True
+
+    def is_set(self) -> bool:
+        return self.value
+
+
+class _RayWorker:
+    def node(self) -> str:
+        import ray
+
+        return ray.get_runtime_context().get_node_id()
+
+    def run(self, task: Task, seed: int, time_limit: float, config: SearchConfig, guide: Any, out: Any,
+            flag: Any, worker: int) -> None:  # fmt: skip
+        _work(task, seed, time_limit, config, guide, out, _PolledFlag(flag), worker)
