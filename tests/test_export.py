@@ -313,3 +313,25 @@ def test_export_into_an_earlier_export_replaces_its_pieces(tmp_path, saved, capl
     assert (out / "piece_01.obj").read_text() == "keep"
     removed = ", ".join([*(f"piece_{i:02d}.stl" for i in range(8, 21)), "piece_100.stl"])
     assert f"removed 14 piece files of an earlier export from {out}: {removed}" in caplog.text
+
+
+def test_xmpuzzle_nests_a_thousand_separations_and_more():
+    """The separations nest K - 1 deep; past Python's recursion limit (about a thousand pieces) the
+    document is still written, and each level takes out the next piece. A bar of unit pieces with a
+    made-up verdict: the XML writer does not judge validity, the verifier before it does."""
+    from rllock.core.verifier import Verdict
+    from rllock.files.export import xmpuzzle_xml
+
+    k = 1200
+    labels = np.arange(1, k + 1).reshape(1, 1, k)
+    moves = [{"piece": i, "moves": [{"direction": "-z", "steps": 1}]} for i in range(1, k)]
+    verdict = Verdict(True, k, "straight", None, None, [1] * k, moves)
+    root = ET.fromstring(xmpuzzle_xml(labels, verdict, "bar").split("\n", 1)[1])
+    level, depth = root.find("problems/problem/solutions/solution/separation"), 0
+    while level is not None:
+        assert [int(p) for p in level.find("pieces").text.split()] == list(range(depth, k))
+        assert level.get("type") == (None if depth == 0 else "left")
+        gone = level.findall("state")[-1].find("dz").text.split()
+        assert int(gone[0]) < -10000 and set(gone[1:]) == {"0"}
+        level, depth = level.find("separation"), depth + 1
+    assert depth == k - 1

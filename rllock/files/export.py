@@ -108,6 +108,10 @@ def _remove_stale_pieces(out: Path, fmt: str, written: list[Path]) -> None:
         )
 
 
+# Where the separations' text goes in the document (`_separations`).
+_SEPARATIONS = "rllock-separations"
+
+
 def _voxel(grid: np.ndarray, name: str) -> ET.Element:
     x, y, z = grid.shape
     element = ET.Element("voxel", x=str(x), y=str(y), z=str(z), name=name, type="0")
@@ -128,27 +132,31 @@ def _state(offsets: np.ndarray) -> ET.Element:
     return state
 
 
-def _separation(disassembly: list[dict], level: int, k: int) -> ET.Element:
-    """The separation that takes piece `level + 1` out of pieces level+1..K (0-based indices level..K-1),
-    with the rest's separation nested inside as its "left" part."""
-    pieces = list(range(level, k))
-    element = ET.Element("separation")
-    if level > 0:
-        element.set("type", "left")
-    pieces_el = _numbers("pieces", pieces)
-    pieces_el.set("count", str(len(pieces)))
-    element.append(pieces_el)
-    offsets = np.zeros((len(pieces), 3), dtype=int)
-    element.append(_state(offsets))
-    moves = disassembly[level]["moves"]
-    for n, move in enumerate(moves):
-        vec = np.asarray(DIRECTIONS[DIRECTION_NAMES.index(move["direction"])])
-        # The last move already clears the other pieces, so it becomes the move to "infinity".
-        offsets[0] += vec * (_REMOVED if n == len(moves) - 1 else move["steps"])
+def _separations(disassembly: list[dict], k: int) -> str:
+    """The solution's separations as XML text: the one that takes piece `level + 1` out of pieces
+    level+1..K (0-based indices level..K-1) holds the rest's separation as its "left" part, K - 1 levels
+    deep. Written as text, level by level, because ElementTree serializes nested elements recursively,
+    beyond Python's recursion limit at about a thousand pieces."""
+    opened = []
+    for level in range(k - 1):
+        pieces = list(range(level, k))
+        element = ET.Element("separation")
+        if level > 0:
+            element.set("type", "left")
+        pieces_el = _numbers("pieces", pieces)
+        pieces_el.set("count", str(len(pieces)))
+        element.append(pieces_el)
+        offsets = np.zeros((len(pieces), 3), dtype=int)
         element.append(_state(offsets))
-    if len(pieces) > 2:
-        element.append(_separation(disassembly, level + 1, k))
-    return element
+        moves = disassembly[level]["moves"]
+        for n, move in enumerate(moves):
+            vec = np.asarray(DIRECTIONS[DIRECTION_NAMES.index(move["direction"])])
+            # The last move already clears the other pieces, so it becomes the move to "infinity".
+            offsets[0] += vec * (_REMOVED if n == len(moves) - 1 else move["steps"])
+            element.append(_state(offsets))
+        text = ET.tostring(element, encoding="unicode")
+        opened.append(text.removesuffix("</separation>"))
+    return "".join(opened) + "</separation>" * len(opened)
 
 
 def xmpuzzle_xml(labels: np.ndarray, verdict: Verdict, title: str) -> str:
@@ -175,14 +183,17 @@ def xmpuzzle_xml(labels: np.ndarray, verdict: Verdict, title: str) -> str:
     solution = ET.SubElement(ET.SubElement(problem, "solutions"), "solution")
     assembly = ET.SubElement(solution, "assembly")
     assembly.text = " ".join(f"{x} {y} {z} 0" for x, y, z in corners)
-    solution.append(_separation(verdict.disassembly, 0, k))
+    ET.SubElement(solution, _SEPARATIONS)
     comment = ET.SubElement(puzzle, "comment")
     comment.text = (
         f"{title}: made by RL-Lock, {k} pieces, removal={verdict.removal}; piece P1 is the key, "
         f"pieces come out in the order P1..P{k - 1}, P{k} stays"
     )
     # BurrTools' parser wants its own plain declaration; the body has no whitespace between tags.
-    return '<?xml version="1.0"?>\n' + ET.tostring(puzzle, encoding="unicode")
+    body = ET.tostring(puzzle, encoding="unicode")
+    return '<?xml version="1.0"?>\n' + body.replace(
+        f"<{_SEPARATIONS} />", _separations(verdict.disassembly, k)
+    )
 
 
 def write_xmpuzzle(labels: np.ndarray, verdict: Verdict, path: str | Path, title: str) -> Path:
