@@ -12,7 +12,7 @@ from PIL import Image
 
 from orchestration.cli.assemblies import add_commands
 from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
-from rllock.core.shapes import read_puz_labels
+from rllock.core.shapes import read_puz_labels, write_puz
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files.assembly import write_assembly
@@ -197,3 +197,12 @@ def test_show_errors(tmp_path):
         _run("show", str(tmp_path / "bad.puz"), "--gif", str(tmp_path / "a.gif"))
     with pytest.raises(RLLockError, match="no such file"):
         _run("show", str(tmp_path / "missing.json"), "--png", str(tmp_path / "a.png"))
+    # 201 pieces: animations that grow with K^2 are refused before any drawing; the PNG is drawn.
+    write_puz(tmp_path / "big.puz", np.arange(1, 202).reshape(201, 1, 1))
+    for kind in ("gif", "html"):
+        with pytest.raises(
+            RLLockError, match="animate at most 200 pieces and this assembly has 201: use --png"
+        ):
+            _run("show", str(tmp_path / "big.puz"), f"--{kind}", str(tmp_path / f"a.{kind}"))
+        assert not (tmp_path / f"a.{kind}").exists()
+    assert _run("show", str(tmp_path / "big.puz"), "--png", str(tmp_path / "big.png")) == 0

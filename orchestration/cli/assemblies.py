@@ -238,6 +238,12 @@ def cmd_show(args: argparse.Namespace) -> int:
     if not (args.png or args.gif or args.html):
         raise RLLockError("nothing to show: give --png, --gif and/or --html")
     labels, metadata = read_assembly(args.assembly)
+    k = int(labels.max())
+    if (args.gif or args.html) and k > render.MAX_ANIMATED:
+        raise RLLockError(
+            f"--gif and --html animate at most {render.MAX_ANIMATED} pieces and this assembly has {k}: "
+            "use --png, or rllock export for the pieces"
+        )
     if args.png:
         render.draw_png(labels, args.png, metadata.get("removal"))
         log.info("wrote %s", args.png)
