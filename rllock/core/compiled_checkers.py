@@ -36,6 +36,9 @@ from numba import njit
 
 CONNECTED, REMOVABLE, INTERLOCKING = 1, 2, 4
 ALL_CHECKS = CONNECTED | REMOVABLE | INTERLOCKING
+# Rows of `_contacts`' counts: an out row and its in row are one apart, so that a search against the
+# edges (direction 1) reads row + 1 where one along them (direction 0) reads row, or row - 1 for an IN.
+R_OUT, R_IN, NEW_OUT, NEW_IN = 0, 1, 2, 3
 
 
 @njit(cache=True)
@@ -97,15 +100,14 @@ def _rays_in_r(ray, part_of, r_node):
 def _contacts(nbr, part_of, n_parts):
     """The face contacts of A_(i-1) per axis, sparse, so that work grows with the contacts and not with
     the square of the piece count. Nodes: placed pieces 0..i-2, the new piece i-1, R = i. Returns
-    (r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj): r_out[a, q] counts the
-    contacts R -> q along +a and r_in[a, q] those q -> R (new_out and new_in the same for the new piece,
-    zero until a chunk's contacts are moved in, and the only place of those between it and R); the
-    contacts between placed pieces, which no chunk changes, are adjacency lists without repeats: the
-    heads of p's edges along +a are out_adj[out_start[a, p]:out_start[a, p + 1]] and the tails of the
-    edges into p in_adj likewise."""
+    (counts, starts, adj): counts[R_OUT, a, q] counts the contacts R -> q along +a and counts[R_IN, a, q]
+    those q -> R (NEW_OUT and NEW_IN the same for the new piece, zero until a chunk's contacts are moved
+    in, and the only place of those between it and R); the contacts between placed pieces, which no
+    chunk changes, are adjacency lists without repeats: the heads of p's edges along +a are
+    adj[starts[0, a, p]:starts[0, a, p + 1]], the tails of the edges into p likewise from starts[1].
+    Three arrays, not eight: every array passed to a compiled call is reference-counted, per chunk."""
     r_node = n_parts - 1
-    r_out = np.zeros((3, n_parts), np.int32)
-    r_in = np.zeros((3, n_parts), np.int32)
+    counts = np.zeros((4, 3, n_parts), np.int32)
     out_deg = np.zeros(3 * n_parts + 1, np.int64)
     in_deg = np.zeros(3 * n_parts + 1, np.int64)
     for v in range(part_of.shape[0]):
@@ -116,9 +118,9 @@ def _contacts(nbr, part_of, n_parts):
                 continue
             q = part_of[u]
             if p == r_node:
-                r_out[a, q] += 1
+                counts[R_OUT, a, q] += 1
             elif q == r_node:
-                r_in[a, p] += 1
+                counts[R_IN, a, p] += 1
             else:
                 out_deg[a * n_parts + p + 1] += 1
                 in_deg[a * n_parts + q + 1] += 1
@@ -144,9 +146,8 @@ def _contacts(nbr, part_of, n_parts):
             in_fill[a * n_parts + q] += 1
     out_start, out_adj = _unique_rows(out_deg, out_adj, n_parts)
     in_start, in_adj = _unique_rows(in_deg, in_adj, n_parts)
-    new_out = np.zeros((3, n_parts), np.int32)
-    new_in = np.zeros((3, n_parts), np.int32)
-    return r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj
+    starts = np.stack((out_start, in_start + out_adj.shape[0]))
+    return counts, starts, np.concatenate((out_adj, in_adj))
 
 
 @njit(cache=True)
@@ -264,7 +265,7 @@ def _remaining_connected(chunk, n, nbr, part_of, r_node, in_chunk, mark, owner, 
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _visit(q, seen, stack, top):
     """Pushes q if it is new; returns the new stack top."""
     if seen[q]:
@@ -274,7 +275,7 @@ def _visit(q, seen, stack, top):
     return top + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _dense_row(row, n_parts, seen, stack, top):
     """Pushes the new nodes q with row[q] > 0 (the contacts of R or of the new piece)."""
     for q in range(n_parts):
@@ -287,7 +288,7 @@ def _dense_row(row, n_parts, seen, stack, top):
 def _strongly_connected(contacts, a, n_parts, skip, absent, seen, stack):
     """Whether the axis-a contact graph on the nodes other than `skip` and `absent` (-1: none) is
     strongly connected: everything reached from one node along the edges and against them."""
-    r_out, r_in, new_out, new_in, out_start, out_adj, in_start, in_adj = contacts
+    counts, starts, adj = contacts
     r_node, new = n_parts - 1, n_parts - 2
     start = 0
     while start == skip or start == absent:
@@ -308,27 +309,24 @@ def _strongly_connected(contacts, a, n_parts, skip, absent, seen, stack):
             p = stack[top]
             before = top
             if p == r_node:
-                top = _dense_row(r_out[a] if direction == 0 else r_in[a], n_parts, seen, stack, top)
+                top = _dense_row(counts[R_OUT + direction, a], n_parts, seen, stack, top)
                 # The contacts between R and the new piece are kept as the new piece's only.
-                if (new_in[a, r_node] if direction == 0 else new_out[a, r_node]) > 0:
+                if counts[NEW_IN - direction, a, r_node] > 0:
                     top = _visit(new, seen, stack, top)
             elif p == new:
-                top = _dense_row(new_out[a] if direction == 0 else new_in[a], n_parts, seen, stack, top)
+                top = _dense_row(counts[NEW_OUT + direction, a], n_parts, seen, stack, top)
             else:
                 # p -> R is an R in-contact of p, R -> p an out-contact; the same for the new piece.
-                if direction == 0:
-                    for i in range(out_start[a, p], out_start[a, p + 1]):
-                        top = _visit(out_adj[i], seen, stack, top)
-                    to_r, to_new = r_in[a, p], new_in[a, p]
-                else:
-                    for i in range(in_start[a, p], in_start[a, p + 1]):
-                        top = _visit(in_adj[i], seen, stack, top)
-                    to_r, to_new = r_out[a, p], new_out[a, p]
+                for i in range(starts[direction, a, p], starts[direction, a, p + 1]):
+                    top = _visit(adj[i], seen, stack, top)
+                to_r, to_new = counts[R_IN - direction, a, p], counts[NEW_IN - direction, a, p]
                 if to_r > 0:
                     top = _visit(r_node, seen, stack, top)
                 if to_new > 0:
                     top = _visit(new, seen, stack, top)
             reached += top - before
+            if reached == size:  # everything reached: the nodes still on the stack add nothing
+                break
         if reached != size:
             return False
     return True
@@ -370,7 +368,7 @@ def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, contacts, stamp, si
     Returns (whether a contact between R and another node dropped to zero, that is an edge was lost;
     a bitmask of the new piece's contacts with nodes other than the key: bit a for an edge into it
     along +a, bit 3 + a for one out of it)."""
-    r_out, r_in, new_out, new_in = contacts[0], contacts[1], contacts[2], contacts[3]
+    counts = contacts[0]
     lost = False
     away_from_key = 0
     for j in range(n):
@@ -380,18 +378,18 @@ def _move_contacts(chunk, n, nbr, part_of, r_node, in_chunk, contacts, stamp, si
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    r_out[a, q] -= sign
-                    lost |= r_out[a, q] == 0
-                new_out[a, q] += sign
+                    counts[R_OUT, a, q] -= sign
+                    lost |= counts[R_OUT, a, q] == 0
+                counts[NEW_OUT, a, q] += sign
                 if q != 0:
                     away_from_key |= 1 << (3 + a)
             u = nbr[v, 2 * a + 1]  # u -> v along +a
             if u >= 0 and in_chunk[u] != stamp:
                 q = part_of[u]
                 if q != r_node:
-                    r_in[a, q] -= sign
-                    lost |= r_in[a, q] == 0
-                new_in[a, q] += sign
+                    counts[R_IN, a, q] -= sign
+                    lost |= counts[R_IN, a, q] == 0
+                counts[NEW_IN, a, q] += sign
                 if q != 0:
                     away_from_key |= 1 << a
     return lost, away_from_key
@@ -487,7 +485,7 @@ def _path_free(chunk, n, coords, index, part_of, r_node, in_chunk, visited, queu
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def check_chunk(chunk, n, piece, topo, node, removal_path, full, scratch, stamp):
     """Bitmask of passed checks (CONNECTED | REMOVABLE | INTERLOCKING). With `full` false it stops at
     the first failure and returns 0 for any rejected chunk. The chunk's voxels hold `stamp` in
