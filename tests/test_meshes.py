@@ -499,3 +499,12 @@ def test_a_textured_obj_split_along_its_seams_is_merged_by_position(tmp_path):
     (tmp_path / "textured.obj").write_text("\n".join(lines + faces) + "\n")
     grid = load_shape(str(tmp_path / "textured.obj"), resolution=4)
     assert grid.shape == (4, 2, 2) and grid.all()
+
+
+def test_meshes_made_in_worker_processes_equal_those_made_in_this_one(assembly):
+    one = assembly_meshes(assembly, voxel_size=10, gap=0.4, workers=1)
+    two = assembly_meshes(assembly, voxel_size=10, gap=0.4, workers=2)
+    assert len(one) == len(two) == 7
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)

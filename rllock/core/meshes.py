@@ -48,7 +48,10 @@ from __future__ import annotations
 
 import itertools
 import logging
+import multiprocessing as mp
+import os
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -126,6 +129,11 @@ def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) ->
     """The watertight mesh of one piece, given as the (n, 3) voxel coordinates it occupies, in the
     assembled position (voxel (x, y, z) spans [x, x+1] * voxel_size along x, and so on), eroded by gap/2
     where it borders other pieces or the outside."""
+    _check_piece(cells, voxel_size, gap)
+    return trimesh.Trimesh(*_piece_arrays(cells, voxel_size, gap), process=False)
+
+
+def _check_piece(cells: np.ndarray, voxel_size: float, gap: float) -> None:
     if voxel_size <= 0:
         raise RLLockError(f"the voxel size must be positive, got {voxel_size}")
     if not 0 <= gap < voxel_size:
@@ -134,6 +142,10 @@ def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) ->
         )
     if len(cells) == 0:
         raise RLLockError("cannot mesh a piece with no voxels")
+
+
+def _piece_arrays(cells: np.ndarray, voxel_size: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, triangles) of `piece_mesh`, checked arguments assumed."""
     inset = gap / 2 / voxel_size
     cubes = [
         m3.Manifold.cube((hi - lo) * voxel_size).translate(lo * voxel_size) for lo, hi in _boxes(cells, inset)
@@ -142,12 +154,35 @@ def piece_mesh(cells: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) ->
     # coplanar triangles across cubes; the tiny tolerance keeps the geometry exact.
     solid = m3.Manifold.batch_boolean(cubes, m3.OpType.Add).as_original().simplify(1e-9)
     mesh = solid.to_mesh()
-    return trimesh.Trimesh(np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts), process=False)
+    return np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts)
 
 
-def assembly_meshes(labels: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0) -> list[trimesh.Trimesh]:
-    """One mesh per piece 1..K of a label grid [x, y, z], in piece order."""
-    return [piece_mesh(np.argwhere(labels == k), voxel_size, gap) for k in range(1, int(labels.max()) + 1)]
+# From this many pieces, `assembly_meshes` meshes them in a process per core: manifold3d's booleans take
+# about 35 ms a piece (1,250 pieces: 44 s on one core), while starting the processes takes about a second.
+PARALLEL_FROM = 100
+
+
+def assembly_meshes(
+    labels: np.ndarray, voxel_size: float = 10.0, gap: float = 0.0, workers: int | None = None
+) -> list[trimesh.Trimesh]:
+    """One mesh per piece 1..K of a label grid [x, y, z], in piece order, meshed by `workers` processes
+    (None: one per core from PARALLEL_FROM pieces, else this process alone)."""
+    k = int(labels.max())
+    order = np.argsort(labels, axis=None, kind="stable")
+    bounds = np.searchsorted(labels.ravel()[order], np.arange(1, k + 2))
+    coords = np.stack(np.unravel_index(order, labels.shape), axis=1)
+    pieces = [coords[bounds[i] : bounds[i + 1]] for i in range(k)]
+    for p in pieces:
+        _check_piece(p, voxel_size, gap)
+    if workers is None:
+        workers = (os.cpu_count() or 1) if k >= PARALLEL_FROM else 1
+    if workers <= 1:
+        arrays = [_piece_arrays(p, voxel_size, gap) for p in pieces]
+    else:
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+            chunk = max(1, k // (4 * workers))
+            arrays = list(pool.map(_piece_arrays, pieces, [voxel_size] * k, [gap] * k, chunksize=chunk))
+    return [trimesh.Trimesh(v, f, process=False) for v, f in arrays]
 
 
 def _load_mesh(path: Path) -> trimesh.Trimesh:
