@@ -251,22 +251,15 @@ def verify_labels(labels: np.ndarray, removal: str = "straight") -> Verdict:
     sizes = [len(assembly.cells[j]) for j in range(1, k + 1)]
     rests = assembly.rests_connected()
     contacts = assembly.contacts()
+    moves_of = assembly.straight_moves if removal == "straight" else assembly.path_moves
     disassembly = []
     for i in range(1, k):
-        failed = None
-        if (
-            not assembly.piece_connected(i)
-            or not rests[i]
-            or (i == k - 1 and not assembly.piece_connected(k))
-        ):
-            failed = "connected"
-        elif (
-            moves := (assembly.straight_moves if removal == "straight" else assembly.path_moves)(i)
-        ) is None:
-            failed = "removable"
-        elif i >= 2 and not assembly.interlocking(i, contacts):
-            failed = "interlocking"
-        if failed is not None:
-            return Verdict(False, k, removal, i, failed, sizes)
+        if not assembly.piece_connected(i) or not rests[i]:  # R_(K-1) is piece K
+            return Verdict(False, k, removal, i, "connected", sizes)
+        moves = moves_of(i)
+        if moves is None:
+            return Verdict(False, k, removal, i, "removable", sizes)
+        if i >= 2 and not assembly.interlocking(i, contacts):
+            return Verdict(False, k, removal, i, "interlocking", sizes)
         disassembly.append({"piece": i, "moves": [asdict(m) for m in moves]})
     return Verdict(True, k, removal, None, None, sizes, disassembly)

@@ -216,9 +216,10 @@ class _RayCrew:
 
         self.jobs = jobs
         self.out = Queue(actor_options={"num_cpus": 0})
-        self.flag = ray.remote(num_cpus=0)(_Flag).remote()
-        worker = ray.remote(num_cpus=1)(_RayWorker)
-        self.actors = [worker.remote() for _ in jobs]
+        # Ray types an actor's methods loosely (no `.remote` on them), so the handles are Any here.
+        self.flag: Any = ray.remote(num_cpus=0)(_Flag).remote()
+        worker: Any = ray.remote(num_cpus=1)(_RayWorker)
+        self.actors: list[Any] = [worker.remote() for _ in jobs]
         self.runs: list[Any] = []
 
     def start(self) -> None:
