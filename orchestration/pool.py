@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
@@ -21,6 +22,7 @@ from rllock.search.workload import Workload
 log = logging.getLogger(__name__)
 
 PLACEMENT_TIMEOUT_S = 300.0
+REACH_TIMEOUT_S = 5.0
 
 
 def largest_node_cpus() -> float:
@@ -39,6 +41,17 @@ class _DropDefaultTokenNotice(logging.Filter):
 _TOKEN_LOGGER = "ray._private.authentication.authentication_token_setup"
 
 
+def _check_reachable(address: str) -> None:
+    """A HOST:PORT that nothing answers on is one line at once: Ray itself retries for minutes."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or "/" in host:
+        return  # "auto", or a URL (ray://, http://) that Ray resolves itself
+    try:
+        socket.create_connection((host, int(port)), timeout=REACH_TIMEOUT_S).close()
+    except OSError as exc:
+        raise RLLockError(f"cannot reach the Ray cluster at {address}: {exc.strerror or exc}") from None
+
+
 def start_ray(address: str | None) -> bool:
     """Connect to Ray at `address` (or at RAY_ADDRESS, set inside a Ray job), else start a private local
     instance; True when this process started the instance (and so must shut it down). Ray starts its
@@ -47,6 +60,7 @@ def start_ray(address: str | None) -> bool:
         return False
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
+        _check_reachable(address)
         ray.init(address=address, logging_level=logging.WARNING)
     else:
         notices = logging.getLogger(_TOKEN_LOGGER)

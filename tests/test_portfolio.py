@@ -84,3 +84,19 @@ def test_solve_on_a_ray_cluster_runs_one_worker_on_each_node(cluster, tmp_path):
         assert method["workers"] == 2 and method["ray"] is True
         assert meta["seed"] in {worker_seed(0, 0), worker_seed(0, 1)}
     assert not actor_nodes(api, "_RayWorker")
+
+
+def test_solve_on_an_address_nothing_answers_is_one_line_at_once(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # free once closed: nothing listens there
+    started = time.monotonic()
+    code, _, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--workers", "2", "--address", f"127.0.0.1:{port}",
+        "--out", str(tmp_path / "o"),
+    )  # fmt: skip
+    assert code == 2 and time.monotonic() - started < 30
+    assert err.strip().startswith(f"rllock: error: cannot reach the Ray cluster at 127.0.0.1:{port}: ")
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()

@@ -90,11 +90,11 @@ def cmd_solve(args: argparse.Namespace) -> int:
         from rllock.search.guide_checkpoint import load_guide
 
         guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
+    joined = args.address is not None and _join_ray(args.address)
     out = fresh_out(args.out)
     written: list[Path] = []
     stats = SearchStats()
     start = time.perf_counter()
-    joined = args.address is not None and _join_ray(args.address)
     try:
         with graceful_stop() as stop:
             _solve_into(task, args, out, written, stats, stop, guide)
@@ -129,7 +129,7 @@ def _join_ray(address: str) -> bool:
 
     try:
         return start_ray(address)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
+    except (ConnectionError, RuntimeError, ValueError) as exc:  # reachable, but not a Ray cluster's head
         raise RLLockError(f"cannot join the Ray cluster at {address}: {str(exc).splitlines()[0]}") from None
 
 
