@@ -32,13 +32,14 @@ a typical FDM printing clearance: every piece's STL is watertight as slicers
 read it, and printed pieces fit together. The functions here default to gap 0, the exact geometry;
 `edge_only_contacts` counts the contacts that make a gap-0 STL non-manifold.
 
-Meshes to voxels. A closed mesh is sampled on a grid whose longest side has `resolution` voxels, mesh axes
-kept, at SUBSAMPLES^3 evenly spread points per voxel (its centre among them), each layer of points tested
-against the solid's cross-section at that height. A voxel is filled when its centre is inside the solid, or
-more than half its sub-samples are. The half rule never thickens a model: where the solid's part of a voxel is
-convex and misses the centre, every sub-sample inside mirrors through the centre to one outside, so it only
-adds voxels cut by a slot or groove through their centre. (A lower share would grow every surface by up to
-half a voxel; the share alone, without the centre, would lose thin rods that run through the centres.)
+Meshes to voxels. A mesh is sampled on a grid whose longest side has `resolution` voxels, mesh axes kept, at
+SUBSAMPLES^3 evenly spread points per voxel (its centre among them), each layer of points tested against the
+solid's cross-section at that height (or, for a mesh that stays open once merged and capped, by its
+generalized winding number above 1/2: `rllock.core.winding`). A voxel is filled when its centre is inside the
+solid, or more than half its sub-samples are. The half rule never thickens a model: where the solid's part of
+a voxel is convex and misses the centre, every sub-sample inside mirrors through the centre to one outside, so
+it only adds voxels cut by a slot or groove through their centre. (A lower share would grow every surface by
+up to half a voxel; the share alone, without the centre, would lose thin rods that run through the centres.)
 Features thinner than a voxel still slip between the centres: a slanted ear or leg becomes a chain of parts
 that touch only along edges or corners, or not at all. So the parts are then joined through empty voxels
 wherever the solid runs from one to the next (two facing sub-samples, one each side of a voxel face, both
@@ -67,6 +68,7 @@ from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from rllock.core.verifier import label_cells
 from rllock.core.winding import build_tree, winding_numbers
 from rllock.errors import RLLockError
 
@@ -213,10 +215,7 @@ def assembly_meshes(
     """One mesh per piece 1..K of a label grid [x, y, z], in piece order, meshed by `workers` processes
     (None: one per core from PARALLEL_FROM pieces, else this process alone)."""
     k = int(labels.max())
-    order = np.argsort(labels, axis=None, kind="stable")
-    bounds = np.searchsorted(labels.ravel()[order], np.arange(1, k + 2))
-    coords = np.stack(np.unravel_index(order, labels.shape), axis=1)
-    pieces = [coords[bounds[i] : bounds[i + 1]] for i in range(k)]
+    pieces = label_cells(labels, k)[1:]
     for p in pieces:
         _check_piece(p, voxel_size, gap)
     if workers is None:

@@ -89,6 +89,28 @@ def _runs(directions: list[int]) -> list[Move]:
     return moves
 
 
+def label_cells(labels: np.ndarray, k: int) -> list[np.ndarray]:
+    """The voxels of each label 0..K of a grid, int[n_j, 3] each (label 0: the empty ones), in one sort
+    instead of K scans of the grid."""
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(k + 2))
+    coords = np.stack(np.unravel_index(order, labels.shape), axis=1)
+    return [coords[bounds[j] : bounds[j + 1]] for j in range(k + 1)]
+
+
+def contact_pairs(labels: np.ndarray) -> list[np.ndarray]:
+    """Per axis, the distinct label pairs (p, q), int[E, 2], where a voxel of piece p has one of piece q
+    next to it along +axis."""
+    out = []
+    for axis in range(3):
+        a = np.moveaxis(labels, axis, 0)
+        p, q = a[:-1].ravel(), a[1:].ravel()
+        touching = (p > 0) & (q > 0) & (p != q)
+        out.append(np.unique(np.stack([p[touching], q[touching]], axis=1), axis=0))
+    return out
+
+
 @dataclass(frozen=True)
 class _Assembly:
     """What the stage checks read, computed once for all stages: the labels, each piece's voxels and
@@ -106,11 +128,7 @@ class _Assembly:
 
     @classmethod
     def of(cls, labels: np.ndarray, k: int) -> _Assembly:
-        flat = labels.ravel()
-        order = np.argsort(flat, kind="stable")
-        bounds = np.searchsorted(flat[order], np.arange(k + 2))
-        coords = np.stack(np.unravel_index(order, labels.shape), axis=1)
-        cells = [coords[bounds[j] : bounds[j + 1]] for j in range(k + 1)]
+        cells = label_cells(labels, k)
         lo = np.array([c.min(axis=0) if len(c) else (0, 0, 0) for c in cells])
         hi = np.array([c.max(axis=0) if len(c) else (0, 0, 0) for c in cells])
         rest_lo, rest_hi = lo.copy(), hi.copy()
@@ -213,16 +231,6 @@ class _Assembly:
                     queue.append(nxt)
         return None
 
-    def contacts(self) -> list[np.ndarray]:
-        """Per axis, the distinct label pairs (p, q), int[E, 2], where a voxel of p has one of q at +axis."""
-        out = []
-        for axis in range(3):
-            a = np.moveaxis(self.labels, axis, 0)
-            p, q = a[:-1].ravel(), a[1:].ravel()
-            touching = (p > 0) & (q > 0) & (p != q)
-            out.append(np.unique(np.stack([p[touching], q[touching]], axis=1), axis=0))
-        return out
-
     @staticmethod
     def interlocking(i: int, contacts: list[np.ndarray]) -> bool:
         """Whether A_i = [P1..Pi, R_i] is interlocking: on every axis the blocking graph over nodes 0..i-1
@@ -250,7 +258,7 @@ def verify_labels(labels: np.ndarray, removal: str = "straight") -> Verdict:
     assembly = _Assembly.of(labels.astype(np.int64), k)
     sizes = [len(assembly.cells[j]) for j in range(1, k + 1)]
     rests = assembly.rests_connected()
-    contacts = assembly.contacts()
+    contacts = contact_pairs(assembly.labels)
     moves_of = assembly.straight_moves if removal == "straight" else assembly.path_moves
     disassembly = []
     for i in range(1, k):

@@ -22,7 +22,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from PIL import Image
 
 from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
-from rllock.core.verifier import Verdict, validate_labels
+from rllock.core.verifier import Verdict, contact_pairs, validate_labels
 
 # Flat shading by face direction (+x, -x, +y, -y, +z, -z): enough to read the shape without a light model.
 _SHADE = (0.82, 0.62, 0.72, 0.9, 1.0, 0.55)
@@ -55,13 +55,9 @@ def _golden_colors(k: int) -> np.ndarray:
 
 def touching_pieces(labels: np.ndarray) -> list[set[int]]:
     """For each piece 1..K (index 0..K-1), the pieces whose voxels share a face with its voxels."""
-    k = int(labels.max())
-    out: list[set[int]] = [set() for _ in range(k)]
-    for axis in range(3):
-        a = np.moveaxis(labels, axis, 0)
-        p, q = a[:-1].ravel(), a[1:].ravel()
-        touching = (p > 0) & (q > 0) & (p != q)
-        for i, j in np.unique(np.stack([p[touching], q[touching]], axis=1), axis=0).tolist():
+    out: list[set[int]] = [set() for _ in range(int(labels.max()))]
+    for pairs in contact_pairs(labels):
+        for i, j in pairs.tolist():
             out[i - 1].add(j - 1)
             out[j - 1].add(i - 1)
     return out
