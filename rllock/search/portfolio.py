@@ -39,13 +39,13 @@ def worker_seed(seed: int, worker: int) -> int:
 
 
 def _work(
+    out: Any,
+    halt: Any,
     task: Task,
     seed: int,
     time_limit: float,
     config: SearchConfig,
     guide: Any,
-    out: Any,
-    halt: Any,
     worker: int,
 ) -> None:
     stats = SearchStats()
@@ -100,6 +100,7 @@ def portfolio_search(
     counted by the parent, until the time limit or `stop()`; the caller stops it by closing the generator
     (or breaking out of its loop). `stats` sums the workers'."""
     stats = SearchStats() if stats is None else stats
+    # Each worker's arguments of `_work` after the queue and the stop flag, which its crew adds.
     jobs = [(task, worker_seed(seed, i), time_limit, config, guide, i) for i in range(workers)]
     crew: _LocalCrew | _RayCrew = _RayCrew(jobs) if on_ray else _LocalCrew(jobs)
     start = time.monotonic()
@@ -151,7 +152,7 @@ class _LocalCrew:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         self.processes = [
-            context.Process(target=_work_locally, args=(*job[:5], self.out, self.event, job[5]), daemon=True)
+            context.Process(target=_work_locally, args=(self.out, self.event, *job), daemon=True)
             for job in jobs
         ]
 
@@ -227,9 +228,7 @@ class _RayCrew:
 
         nodes = ray.get([a.node.remote() for a in self.actors])
         log.info("search workers on %d Ray node(s): %s", len(set(nodes)), ", ".join(nodes))
-        self.runs = [
-            a.run.remote(*job[:5], self.out, self.flag, job[5]) for a, job in zip(self.actors, self.jobs)
-        ]
+        self.runs = [a.run.remote(self.out, self.flag, *job) for a, job in zip(self.actors, self.jobs)]
 
     def get(self, timeout: float) -> tuple | None:
         from ray.util.queue import Empty
@@ -285,6 +284,5 @@ class _RayWorker:
 
         return ray.get_runtime_context().get_node_id()
 
-    def run(self, task: Task, seed: int, time_limit: float, config: SearchConfig, guide: Any, out: Any,
-            flag: Any, worker: int) -> None:  # fmt: skip
-        _work(task, seed, time_limit, config, guide, out, _PolledFlag(flag), worker)
+    def run(self, out: Any, flag: Any, *job: Any) -> None:
+        _work(out, _PolledFlag(flag), *job)
