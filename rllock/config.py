@@ -387,3 +387,46 @@ class GuideTrainConfig:
             raise RLLockError("--batch-size cannot exceed --buffer-capacity")
         if Path(self.logdir).exists() and not Path(self.logdir).is_dir():
             raise RLLockError(f"--logdir {self.logdir} is a file")
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """`rllock serve`: a Ray Serve application with an HTTP API and a web page; a model deployment that
+    batches network evaluations across jobs, and a job runner with a queue."""
+
+    host: str = "127.0.0.1"
+    """Address the HTTP server listens on: loopback, unless you mean to serve other machines."""
+    port: int = 8000
+    """HTTP port."""
+    address: str | None = None
+    """Join this Ray cluster (HOST:PORT) instead of starting a local Ray instance."""
+    data: str = "serve-data"
+    """Folder for jobs and their files: they survive a restart of the server."""
+    max_jobs: int = 0
+    """Jobs that run at once (the rest wait in the queue); 0 = two per CPU core of the Ray cluster (a
+    generate job waits for the network about half of its time)."""
+    max_client_jobs: int = 16
+    """Queued and running jobs one client address may have at once."""
+    max_upload_mb: float = 20.0
+    """Largest uploaded shape file, in MB."""
+    max_voxels: int = 50_000
+    """Largest shape, in voxels (after a mesh is voxelized)."""
+    max_time_limit: float = 900.0
+    """Largest time limit a job may ask for, in seconds."""
+
+    def validate(self) -> None:
+        if not 0 < self.port < 65536:
+            raise RLLockError(f"--port must be 1-65535, got {self.port}")
+        if self.max_jobs < 0:
+            raise RLLockError(f"--max-jobs must be >= 0, got {self.max_jobs}")
+        positive = {
+            "max_client_jobs": self.max_client_jobs,
+            "max_upload_mb": self.max_upload_mb,
+            "max_voxels": self.max_voxels,
+            "max_time_limit": self.max_time_limit,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
+        if Path(self.data).exists() and not Path(self.data).is_dir():
+            raise RLLockError(f"--data {self.data} is a file, not a folder")

@@ -3,11 +3,13 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
-# The HTML viewer test renders in headless Chromium (Debian's package); install it when we can.
-if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-  echo "installing chromium for the HTML viewer test" >&2
-  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
-    || echo "could not install chromium; the HTML rendering test will be skipped" >&2
+# The HTML viewer and web page tests run headless Chromium and its driver (Debian's packages); install
+# them when we can.
+if ! { command -v chromium && command -v chromedriver; } >/dev/null 2>&1 && [ "$(id -u)" = 0 ] \
+  && command -v apt-get >/dev/null 2>&1; then
+  echo "installing chromium and chromium-driver for the browser tests" >&2
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
+    || echo "could not install chromium; the browser tests will be skipped" >&2
 fi
 # Lint, format and type checks first: a style or type error fails fast, before the 10-minute suite.
 .venv/bin/ruff check .

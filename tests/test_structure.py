@@ -22,6 +22,7 @@ FLOORS: list[tuple[str, ...]] = [
     ("rllock.search",),
     ("actors", "learner"),
     ("orchestration",),
+    ("orchestration.service",),
     ("orchestration.cli",),
     ("orchestration.bench",),
     ("orchestration.cli.main", "orchestration.cli.__main__"),

@@ -10,7 +10,7 @@ import os
 import sys
 
 from orchestration.bench import commands as bench_commands
-from orchestration.cli import assemblies, training
+from orchestration.cli import assemblies, service, training
 from rllock.errors import RLLockError
 from rllock.process import setup_jax_cache
 
@@ -19,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rllock", description="Interlocking assemblies from voxel shapes.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
-    for group in (assemblies, training, bench_commands):
+    for group in (assemblies, training, service, bench_commands):
         group.add_commands(sub)
     return parser
 

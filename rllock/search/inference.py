@@ -231,11 +231,15 @@ def generate(
     picture: PictureWriter | None = None,
     progress: bool = True,
     stop: Callable[[], bool] = lambda: False,
+    report: Callable[[int, int, int], None] | None = None,
+    searchers: Sequence[Player] | None = None,
 ) -> GenerateResult:
     """Rounds of `batch` lockstep episodes until `count` distinct valid assemblies, `time_limit`
-    seconds or `stop()` (a round that has started finishes), in this process."""
+    seconds or `stop()` (a round that has started finishes), in this process. `report(episodes, valid,
+    most pieces placed)` after each round; `searchers`: the lockstep groups to play (default: the
+    policy's own network, one group per core)."""
     start = time.perf_counter()
-    group_searchers = searchers_for(policy, batch, local_groups())
+    group_searchers = searchers_for(policy, batch, local_groups()) if searchers is None else searchers
     collector = Collector(
         policy, count=count, batch=batch, seed=seed, out=out, picture=picture, progress=progress
     )
@@ -244,6 +248,8 @@ def generate(
         t0 = time.perf_counter()
         collector.take(play_round(group_searchers, policy, seed, round_), time.perf_counter() - t0)
         round_ += 1
+        if report is not None:
+            report(collector.episodes, len(collector.seen), collector.best_placed)
     return collector.result(time.perf_counter() - start)
 
 

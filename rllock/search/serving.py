@@ -101,3 +101,19 @@ def serves(meta: Metadata, where: Path, wanted: Wanted) -> bool:
     except RLLockError:
         return False
     return True
+
+
+def checkpoint_for(task: Task) -> str:
+    """The shipped checkpoint that generates for `task`: one trained for exactly this task, else the
+    multi-task `general` where it plays the task; a one-line error when none does."""
+    from rllock.files.checkpoint import SHIPPED, read_metadata, shipped_names
+
+    names = shipped_names()
+    # A checkpoint trained for the task itself before the one trained for many.
+    for name in sorted(names, key=lambda n: n == "general"):
+        if serves(read_metadata(SHIPPED / name), SHIPPED / name, task):
+            return name
+    raise RLLockError(
+        f"no shipped checkpoint generates {task.shape_name} K={task.pieces} (removal={task.removal}): "
+        "use the search solver"
+    )
