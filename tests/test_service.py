@@ -7,9 +7,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import signal
-import subprocess
-import sys
 import time
 import zipfile
 from pathlib import Path
@@ -18,8 +15,7 @@ import numpy as np
 import pytest
 import requests
 
-from rllock.core.verifier import verify_labels
-from tests.conftest import _free_port
+from orchestration.bench.serve import ServerProcess
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
@@ -35,90 +31,14 @@ LIMITS = [
 ]
 
 
-class Server:
-    """`rllock serve` in a process of its own, on a free loopback port, with a data folder that outlives
-    it (for the restart)."""
-
-    def __init__(self, data: Path):
-        self.data, self.port = data, _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.proc: subprocess.Popen | None = None
-        self.log = data.parent / "serve.log"
-
-    def start(self) -> float:
-        """Starts it; the seconds until /api/health answered."""
-        began = time.monotonic()
-        with open(self.log, "a") as log:
-            self.proc = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "orchestration.cli",
-                    "serve",
-                    "--port",
-                    str(self.port),
-                    "--data",
-                    str(self.data),
-                    *LIMITS,
-                ],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env={**os.environ, "RAY_ADDRESS": ""},
-            )
-        while time.monotonic() - began < 180:
-            assert self.proc.poll() is None, self.log.read_text()[-3000:]
-            try:
-                if requests.get(f"{self.url}/api/health", timeout=2).ok:
-                    return time.monotonic() - began
-            except requests.ConnectionError:
-                pass
-            time.sleep(0.3)
-        raise AssertionError("the server did not answer within 180 s")
-
-    def stop(self) -> int:
-        assert self.proc is not None
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-            raise
-
-    def get(self, path: str, **kw) -> requests.Response:
-        return requests.get(self.url + path, timeout=60, **kw)
-
-    def post(self, path: str, **kw) -> requests.Response:
-        return requests.post(self.url + path, timeout=120, **kw)
-
-    def job(self, **fields) -> dict:
-        r = self.post(
-            "/api/jobs",
-            data={k: str(v) for k, v in fields.items() if k != "files"},
-            files=fields.get("files"),
-        )
-        assert r.status_code == 201, r.text
-        return r.json()
-
-    def wait(self, job_id: str, seconds: float = 120, until=("done", "failed", "cancelled")) -> dict:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            view = self.get(f"/api/jobs/{job_id}").json()
-            if view["state"] in until:
-                return view
-            time.sleep(0.3)
-        raise AssertionError(f"job {job_id} still {view['state']} after {seconds} s")
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    server = Server(tmp_path_factory.mktemp("serve") / "data")
+    server = ServerProcess(tmp_path_factory.mktemp("serve") / "data", LIMITS)
     server.start()
     try:
         yield server
     finally:
-        if server.proc is not None and server.proc.poll() is None:
-            server.stop()
+        server.stop()
 
 
 def _box_stl(extents=(3.0, 2.0, 1.5)) -> bytes:
@@ -133,14 +53,6 @@ def _flat_stl() -> bytes:
     return trimesh.Trimesh(
         vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], faces=[[0, 1, 2], [1, 3, 2]]
     ).export(file_type="stl")
-
-
-def _verified(server: Server, job: dict) -> np.ndarray:
-    doc = server.get(job["files"]["assembly.json"]).json()
-    assert doc["verification"]["valid"] is True
-    labels = np.asarray(doc["labels"]).reshape(doc["dimensions"][::-1]).transpose(2, 1, 0)
-    assert verify_labels(labels, doc["removal"]).valid
-    return labels
 
 
 def test_shapes_preview_and_openapi(server):
@@ -179,7 +91,7 @@ def test_a_solve_job_from_request_to_files(server):
                 states.append(json.loads(line[6:])["state"])
     assert states[-1] == "done" and len(states) >= 2, states
     done = server.get(f"/api/jobs/{job['id']}").json()
-    labels = _verified(server, done)
+    labels = server.verified(done)
     assert labels.max() == 6
     puz = server.get(done["files"]["assembly.puz"])
     assert "verified valid" in puz.text
@@ -196,7 +108,7 @@ def test_a_solve_job_from_request_to_files(server):
     assert key.is_watertight and np.allclose(key.extents, extent - 0.5, atol=1e-6)
 
 
-def _count(server: Server) -> int:
+def _count(server: ServerProcess) -> int:
     return len(server.get("/api/jobs").json())
 
 
@@ -268,7 +180,7 @@ def test_concurrent_generate_jobs_share_network_batches(server):
     assert [d["state"] for d in done] == ["done"] * 4, [d["error"] for d in done]
     assert all(d["spec"]["checkpoint"] == "cube4-k7" for d in done)
     for d in done:
-        assert _verified(server, d).max() == 7
+        assert server.verified(d).max() == 7
     after = server.get("/api/stats").json()["model"]
     calls, merged = after["calls"] - before["calls"], after["requests"] - before["requests"]
     assert calls > 0 and merged / calls > 1.0, after
@@ -289,7 +201,7 @@ def test_a_restart_keeps_finished_jobs_and_runs_queued_ones(server):
     jobs = {j["id"]: j for j in server.get("/api/jobs").json()}
     for job in finished:
         assert jobs[job["id"]]["state"] == "done"
-        _verified(server, jobs[job["id"]])
+        server.verified(jobs[job["id"]])
     assert server.wait(pending["id"], 90)["state"] == "done"
     assert up < 120
 

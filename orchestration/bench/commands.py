@@ -42,6 +42,25 @@ def _add_throughput(bench: argparse._SubParsersAction) -> None:
     _add_scaling(bench)
     _add_shapes(bench)
     _add_guide(bench)
+    _add_serve(bench)
+
+
+def _add_serve(bench: argparse._SubParsersAction) -> None:
+    p = bench.add_parser(
+        "serve",
+        help="load test of rllock serve on loopback: generate jobs together against one after another",
+    )
+    p.add_argument("--jobs", type=int, default=16, help="generate jobs per arm (default %(default)s)")
+    p.add_argument("--shape", default="cube4", help="a built-in shape (default %(default)s)")
+    p.add_argument("--pieces", type=int, default=7, help="K (default %(default)s)")
+    p.add_argument(
+        "--time-limit", type=positive_float, default=60.0, help="seconds per job (default %(default)g)"
+    )
+    p.add_argument(
+        "--max-jobs", type=int, default=0, help="the server's --max-jobs (default 0: two per core)"
+    )
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=entry.cmd_bench_serve)
 
 
 def _add_guide(bench: argparse._SubParsersAction) -> None:

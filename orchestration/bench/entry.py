@@ -374,3 +374,25 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         command = "rllock " + " ".join(sys.argv[1:])
         sys.stdout.write(format_guide_table(rows, arms, guide, command, args.time_limit))
     return 0
+
+
+def cmd_bench_serve(args: argparse.Namespace) -> int:
+    import os
+
+    from orchestration.bench.serve import format_load_table, load_test
+
+    if args.jobs < 1:
+        raise RLLockError(f"--jobs must be at least 1, got {args.jobs}")
+    if args.max_jobs < 0:
+        raise RLLockError(f"--max-jobs must be >= 0, got {args.max_jobs}")
+    max_jobs = args.max_jobs or 2 * (os.cpu_count() or 1)
+    arms, up = load_test(
+        jobs=args.jobs, shape=args.shape, pieces=args.pieces, time_limit=args.time_limit, max_jobs=max_jobs
+    )
+    if args.json:
+        sys.stdout.write(
+            json.dumps({"server_up_s": round(up, 2), "arms": [a.to_json() for a in arms]}) + "\n"
+        )
+    else:
+        sys.stdout.write(format_load_table(arms, "rllock " + " ".join(sys.argv[1:]), up))
+    return 0 if all(a.verified == a.jobs for a in arms) else 1

@@ -119,11 +119,12 @@ def _read_upload(label: str, suffix: str, data: bytes, resolution: int | None) -
 
 
 def sensible_pieces(n: int) -> dict[str, int]:
-    """The K a user would start from for N voxels: pieces of about 4 to 40 voxels, suggested about 10;
-    `max` is N (the largest K there is)."""
+    """The K a user would start from for N voxels: pieces of 4 to 40 voxels (`low` to `high`); suggested,
+    pieces of about 20 voxels, where the solver is quick on most shapes (smaller pieces in thin parts
+    often take minutes: docs/benchmarks.md); `max` is N, the largest K there is."""
     low = max(2, math.ceil(n / 40))
     high = max(low, n // 4)
-    suggested = min(max(round(n / 10), low), high)
+    suggested = min(max(round(n / 20), low), high)
     return {"min": 2, "max": n, "low": low, "high": min(high, n), "suggested": min(suggested, n)}
 
 

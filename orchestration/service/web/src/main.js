@@ -152,7 +152,7 @@ async function preview() {
     const k = info.pieces;
     $("shape-info").textContent =
       `${info.name}: N = ${info.N} voxels, ${info.dimensions.join(" × ")}. K can be 2 to ${k.max}; ` +
-      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high} (suggested ${k.suggested}).`;
+      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}; suggested ${k.suggested}, pieces of about 20 voxels, quick to solve.`;
     $("pieces").max = k.max;
     $("pieces").value = k.suggested;
     view.show([{ voxels: cellsOf(info.voxels, info.dimensions), color: 0xb8bec6 }], info.dimensions);
