@@ -59,9 +59,9 @@ class ServerProcess:
             if self.proc.poll() is not None:
                 raise RLLockError(f"the server exited: {self.log_path.read_text()[-2000:]}")
             try:
-                if requests.get(f"{self.url}/api/health", timeout=2).ok:
+                if requests.get(f"{self.url}/api/health", timeout=10).ok:
                     return time.monotonic() - began
-            except requests.ConnectionError:
+            except requests.RequestException:  # not listening yet, or the proxy up before the application
                 pass
             time.sleep(0.2)
         self.stop()
