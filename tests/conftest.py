@@ -25,16 +25,19 @@ def data() -> Path:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under xdist (`scripts/test.sh` runs two workers), the tests that start Ray run one after another
     on one worker: two Ray instances at once would fight over the machine's cores and make their timing
-    tests flaky, while the other tests fill the other worker. xdist's loadgroup reads a group from the
-    test id's "@group" suffix, which xdist 3.8 writes where pytest 9 no longer keeps the id (`_nodeid`,
-    not `_id`): the suffix is set here."""
+    tests flaky, while the other tests fill the other worker. A module may name a group of its own
+    (`RAY_GROUP`): the service's tests, which start one Ray instance for the whole module and make
+    no timing claims, go to whichever worker is free. xdist's loadgroup reads a group from the test
+    id's "@group" suffix, which xdist 3.8 writes where pytest 9 no longer keeps the id (`_nodeid`, not
+    `_id`): the suffix is set here."""
     from _pytest.nodeid import coerce_node_id
 
     if not getattr(config.option, "loadgroup", False):
         return
     for item in items:
-        if item.get_closest_marker("ray") and not item.nodeid.endswith("@ray"):
-            item._id = coerce_node_id(f"{item.nodeid}@ray")  # type: ignore[attr-defined]
+        if item.get_closest_marker("ray") and "@" not in item.nodeid:
+            group = getattr(getattr(item, "module", None), "RAY_GROUP", "ray")
+            item._id = coerce_node_id(f"{item.nodeid}@{group}")  # type: ignore[attr-defined]
 
 
 def _free_port() -> int:

@@ -18,8 +18,11 @@ import requests
 from orchestration.bench.serve import ServerProcess
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
+RAY_GROUP = "service"  # tests/conftest.py: beside the other Ray tests, on whichever worker is free
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 LIMITS = [
+    "--max-jobs",
+    "2",
     "--max-client-jobs",
     "5",
     "--max-upload-mb",
@@ -126,6 +129,7 @@ BAD = [
     ({"pieces": "6"}, ("x.stl", b"solid nonsense\nfacet normal 0 0\n"), 400, "x.stl"),
     ({"pieces": "6"}, ("flat.stl", None), 400, "flat.stl"),
     ({"pieces": "6"}, ("big.npy", b"\0" * 600_000), 413, "limit of 500,000 bytes"),
+    ({"pieces": "6"}, ("huge.npy", b"\0" * 5_000_000), 413, "limit of 500,000 bytes"),
     ({"pieces": "6"}, ("../../etc/passwd", b"x"), 400, "unsupported file 'passwd'"),
 ]
 

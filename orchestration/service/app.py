@@ -77,6 +77,20 @@ class ApiError(Exception):
         self.status = status
 
 
+UPLOAD_CAP = {"bytes": 0}  # the largest request body, set by the ingress from its config
+
+
+@api.middleware("http")
+async def _refuse_large_bodies(request: Request, call_next):
+    """A body that says it is larger than the upload cap (plus room for the form's other fields) is
+    refused before it is read, not after it was spooled to disk."""
+    size = request.headers.get("content-length", "")
+    if UPLOAD_CAP["bytes"] and size.isdigit() and int(size) > UPLOAD_CAP["bytes"] + 65536:
+        message = f"the file is larger than the server's limit of {UPLOAD_CAP['bytes']:,} bytes"
+        return JSONResponse({"error": message}, status_code=413)
+    return await call_next(request)
+
+
 @api.exception_handler(ApiError)
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
     return JSONResponse({"error": str(exc)}, status_code=exc.status)
@@ -197,6 +211,7 @@ class Service:
         self.limits = Limits(
             int(self.config.max_upload_mb * 1e6), self.config.max_voxels, self.config.max_time_limit
         )
+        UPLOAD_CAP["bytes"] = self.limits.max_upload_bytes
         self.model = model
         self.folder = Path(self.config.data) / "jobs"
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -222,22 +237,35 @@ class Service:
 
     def _pump(self) -> None:
         while True:
-            with self.lock:
-                refs = list(self.running.values())
-            if refs:
-                ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0.2)
-            else:
-                time.sleep(0.2)
-                ready = []
-            for ref in ready:
-                self._collect(ref)
-            with self.lock:
-                while self.queue and len(self.running) < self.max_jobs:
-                    self._start(self.queue.popleft())
+            try:
+                self._pump_once()
+            except Exception:  # the queue must outlive any one job's trouble; the log says what it was
+                log.exception("the job queue's pump")
+                time.sleep(1.0)
+
+    def _pump_once(self) -> None:
+        with self.lock:
+            refs = list(self.running.values())
+        if refs:
+            ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0.2)
+        else:
+            time.sleep(0.2)
+            ready = []
+        for ref in ready:
+            self._collect(ref)
+        with self.lock:
+            while self.queue and len(self.running) < self.max_jobs:
+                self._start(self.queue.popleft())
 
     def _start(self, job_id: str) -> None:
         record = self.jobs[job_id]
-        grid = np.load(self.folder / job_id / "shape.npy")
+        try:
+            grid = np.load(self.folder / job_id / "shape.npy")
+        except (OSError, ValueError) as exc:
+            self._update(
+                record, state="failed", finished=time.time(), error=f"its shape is unreadable: {exc}"
+            )
+            return
         self.running[job_id] = _job_task.options(num_cpus=self.job_cpus, name=f"rllock-job-{job_id}").remote(
             job_id, record["spec"], grid
         )
@@ -265,6 +293,17 @@ class Service:
 
     def _update(self, record: dict, **changes) -> None:
         record.update(changes)
+        if "state" in changes:
+            spec = record["spec"]
+            log.info(
+                "job %s (%s %s K=%d): %s%s",
+                record["id"],
+                spec["method"],
+                spec["shape"],
+                spec["pieces"],
+                record["state"],
+                f": {record['error']}" if record["error"] else "",
+            )
         if record["state"] in FINAL:
             self.progress_of.pop(record["id"], None)
         write_json(self.folder / record["id"] / "job.json", record)
