@@ -37,8 +37,8 @@ LIMITS = [
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     server = ServerProcess(tmp_path_factory.mktemp("serve") / "data", LIMITS)
-    server.start()
     try:
+        server.start()
         yield server
     finally:
         server.stop()

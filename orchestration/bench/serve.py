@@ -54,29 +54,40 @@ class ServerProcess:
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 env={**os.environ, "RAY_ADDRESS": ""},
+                start_new_session=True,  # its Ray processes with it, so that a kill reaches them all
             )
-        while time.monotonic() - began < timeout:
-            if self.proc.poll() is not None:
-                raise RLLockError(f"the server exited: {self.log_path.read_text()[-2000:]}")
-            try:
-                if requests.get(f"{self.url}/api/health", timeout=10).ok:
-                    return time.monotonic() - began
-            except requests.RequestException:  # not listening yet, or the proxy up before the application
-                pass
-            time.sleep(0.2)
-        self.stop()
-        raise RLLockError(f"the server did not answer within {timeout:g} s")
+        try:
+            while time.monotonic() - began < timeout:
+                if self.proc.poll() is not None:
+                    raise RLLockError(f"the server exited: {self.log_path.read_text()[-2000:]}")
+                try:
+                    if requests.get(f"{self.url}/api/health", timeout=10).ok:
+                        return time.monotonic() - began
+                except requests.RequestException:  # not listening yet, or the proxy before the application
+                    pass
+                time.sleep(0.2)
+            raise RLLockError(f"the server did not answer within {timeout:g} s")
+        except BaseException:
+            self.stop()
+            raise
 
     def stop(self) -> int:
-        """SIGTERM, as Ctrl-C would; the exit status (killed after 60 s)."""
-        if self.proc is None or self.proc.poll() is not None:
-            return 0 if self.proc is None else self.proc.returncode
-        self.proc.send_signal(signal.SIGTERM)
+        """SIGTERM, as Ctrl-C would; the exit status. After 60 s, or if the server is gone, its whole
+        process group is killed: no Ray process of it outlives this call."""
+        if self.proc is None:
+            return 0
+        status = self.proc.poll()
+        if status is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                status = self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                status = None
         try:
-            return self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        return self.proc.wait() if status is None else status
 
     def get(self, path: str, **kw) -> requests.Response:
         return requests.get(self.url + path, timeout=60, **kw)
