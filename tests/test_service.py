@@ -225,7 +225,7 @@ def test_the_web_page_in_headless_chromium(server, tmp_path):
         "--headless=new",
         "--no-sandbox",
         "--enable-unsafe-swiftshader",
-        "--window-size=1360,1000",
+        "--window-size=1360,1150",
         "--disable-dev-shm-usage",
         f"--user-data-dir={tmp_path / 'profile'}",
     ):

@@ -267,7 +267,7 @@ async function showAssembly(job) {
       at = at.map((c, a) => c + last[a] * move.steps);
       path.push(at);
     }
-    path.push(at.map((c, a) => c + last[a] * Math.max(...dims)));
+    path.push(at.map((c, a) => c + last[a] * Math.ceil(Math.max(...dims) / 2)));
   }
   page.assembly = { k, meshes, paths, hidden: new Set() };
   buildPieceList(k);
