@@ -51,6 +51,8 @@ from rllock.config import ServeConfig
 from rllock.errors import RLLockError
 
 log = logging.getLogger(__name__)
+# In the replicas, Ray Serve's logger is the one with handlers (its log files, and the server's stderr).
+replica_log = logging.getLogger("ray.serve.rllock")
 
 APP = "rllock"
 WEB = Path(__file__).resolve().parent / "web"
@@ -229,7 +231,7 @@ class Service:
         self.shape_rows = [self._shape_row(name) for name in SHAPE_NAMES]
         self.started = time.time()
         threading.Thread(target=self._pump, name="job-queue", daemon=True).start()
-        log.info(
+        replica_log.info(
             "%d jobs on record, %d queued; at most %d at once", len(records), len(self.queue), self.max_jobs
         )
 
@@ -240,7 +242,7 @@ class Service:
             try:
                 self._pump_once()
             except Exception:  # the queue must outlive any one job's trouble; the log says what it was
-                log.exception("the job queue's pump")
+                replica_log.exception("the job queue's pump")
                 time.sleep(1.0)
 
     def _pump_once(self) -> None:
@@ -295,7 +297,7 @@ class Service:
         record.update(changes)
         if "state" in changes:
             spec = record["spec"]
-            log.info(
+            replica_log.info(
                 "job %s (%s %s K=%d): %s%s",
                 record["id"],
                 spec["method"],
