@@ -2,7 +2,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -40,12 +39,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item._id = coerce_node_id(f"{item.nodeid}@{group}")  # type: ignore[attr-defined]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def cluster(monkeypatch) -> Iterator[tuple]:
     """(the Cluster, the Jobs API's address, a function that adds a worker node of one CPU), torn down
@@ -57,7 +50,9 @@ def cluster(monkeypatch) -> Iterator[tuple]:
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     from ray.cluster_utils import Cluster
 
-    port = _free_port()
+    from orchestration.bench.serve import free_port
+
+    port = free_port()
     head = {
         "num_cpus": 0,
         "node_ip_address": "127.0.0.1",
