@@ -4,9 +4,10 @@ The public API, for a notebook or a script (names load their modules on first us
 stays light):
 
     make_task(shape, pieces, removal="straight")   a task: a shape (built-in name, file or bool grid) and K
-    solve(task, count=1, time_limit=60, seed=0, guide=None)
+    solve(task, count=1, time_limit=60, seed=0, guide=None, threads=1)
                                                    assemblies by randomized search, no training; with a
-                                                   guide network (`load_guide`) ordering and pruning it
+                                                   guide network (`load_guide`) ordering and pruning it;
+                                                   on `threads` cores, the same search sooner
     load_guide(checkpoint="guide")                 a guide network: the shipped one, or a train-guide run
     load_policy(checkpoint)                        a trained network and its search settings
     generate(policy, count=, batch=, time_limit=, seed=, out=None)

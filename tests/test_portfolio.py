@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import time
 
 import numpy as np
@@ -34,15 +35,41 @@ def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed(
     assert not mp.active_children()  # leaving the loop stopped every worker
 
 
-def test_workers_stop_at_the_time_limit_with_their_progress_summed():
+def test_workers_stop_at_the_time_limit_with_their_progress_summed_and_only_worker_0_in_the_foreground():
     task = make_task("desia-bunny", 80)  # none in a few seconds
-    stats, reports = SearchStats(), []
+    stats, reports, policies = SearchStats(), [], []
+
+    def report(s: SearchStats) -> None:
+        reports.append(s)
+        policies.append([os.sched_getscheduler(p.pid) for p in mp.active_children()])
+
     started = time.monotonic()
-    found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
+    found = list(portfolio_search(task, seed=0, workers=3, time_limit=4, stats=stats, report=report))
     elapsed = time.monotonic() - started
     assert not found and 4 <= elapsed < 7, elapsed
-    assert reports and stats.expansions > 0 and stats.restarts >= 2 and 0 < stats.placed < 79
+    assert reports and stats.expansions > 0 and stats.restarts >= 3 and 0 < stats.placed < 79
     assert not mp.active_children()
+    # Worker 0 runs in this process, as it was; the others, in processes of their own, in the idle class.
+    assert policies[-1] == [os.SCHED_IDLE] * 2 and os.sched_getscheduler(0) == os.SCHED_OTHER, policies
+
+
+@pytest.mark.parametrize(
+    "shape, pieces, removal",
+    [("cube4", 7, "straight"), ("cube5", 13, "path"), ("desia-bunny", 40, "straight")],  # the last: deep mode
+)
+def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces, removal):
+    task = make_task(shape, pieces, removal)
+    runs = []
+    for threads in (1, 3):
+        stats = SearchStats()
+        found = [
+            f.labels
+            for f, _ in zip(search(task, seed=3, time_limit=60, stats=stats, threads=threads), range(2))
+        ]
+        runs.append((found, stats.expansions, stats.restarts))
+    (plain, expansions, restarts), (threaded, t_expansions, t_restarts) = runs
+    assert len(plain) == 2 and (t_expansions, t_restarts) == (expansions, restarts)
+    assert all(np.array_equal(a, b) for a, b in zip(plain, threaded, strict=True))
 
 
 def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_path):

@@ -323,8 +323,9 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         "--workers",
         type=int,
         default=1,
-        help="searches run at once, one process (core) each, from different seeds; the first assemblies "
-        "found are kept (default %(default)s: the plain search, reproducible by --seed)",
+        help="searches run at once, one process each, from different seeds; the first assemblies found "
+        "are kept. Worker 0 (--seed) samples on up to this many threads and the others use the cycles it "
+        "leaves (default %(default)s: the plain search, reproducible by --seed)",
     )
     p.add_argument(
         "--address",

@@ -223,7 +223,7 @@ def sample_and_check(topo, labels, piece, n, num_samples, removal_path, seed):
     return accepted[:k], k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sample_and_check_mixed(
     topo, labels, piece, n, num_samples, removal_path, seed, closed_share, thin=0, wide_seeds=False
 ):
@@ -435,7 +435,7 @@ def candidates_serial(topo, labels, pieces, seeds, n, num_samples, max_candidate
     return out, found, drawn
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def chunk_cuts(nbr, labels, chunks):
     """int64[k]: for each chunk (a row of voxel numbers of R, labels 0), how many faces it shares with
     the rest of R: what the remaining volume loses as surface when the chunk leaves it is this cut less
