@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -14,8 +15,9 @@ from helpers import actor_nodes, run_cli
 from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
 from rllock.files.assembly import read_assembly
+from rllock.search import solver
 from rllock.search.portfolio import portfolio_search, worker_seed
-from rllock.search.solver import SearchStats, search
+from rllock.search.solver import SamplingPool, SearchStats, search
 
 
 def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed():
@@ -35,30 +37,35 @@ def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed(
     assert not mp.active_children()  # leaving the loop stopped every worker
 
 
-def test_workers_stop_at_the_time_limit_with_their_progress_summed_and_only_worker_0_in_the_foreground():
+def test_workers_stop_at_the_time_limit_with_their_progress_summed():
     task = make_task("desia-bunny", 80)  # none in a few seconds
-    stats, reports, policies = SearchStats(), [], []
-
-    def report(s: SearchStats) -> None:
-        reports.append(s)
-        policies.append([os.sched_getscheduler(p.pid) for p in mp.active_children()])
-
+    stats, reports = SearchStats(), []
     started = time.monotonic()
-    found = list(portfolio_search(task, seed=0, workers=3, time_limit=4, stats=stats, report=report))
+    found = list(
+        portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append, threads=2)
+    )
     elapsed = time.monotonic() - started
     assert not found and 4 <= elapsed < 7, elapsed
-    assert reports and stats.expansions > 0 and stats.restarts >= 3 and 0 < stats.placed < 79
+    assert reports and stats.expansions > 0 and stats.restarts >= 2 and 0 < stats.placed < 79
     assert not mp.active_children()
-    # Worker 0 runs in this process, as it was; the others, in processes of their own, in the idle class.
-    assert policies[-1] == [os.SCHED_IDLE] * 2 and os.sched_getscheduler(0) == os.SCHED_OTHER, policies
+    assert not [t for t in threading.enumerate() if t.name.startswith("rllock-lookahead")]
 
 
 @pytest.mark.parametrize(
     "shape, pieces, removal",
     [("cube4", 7, "straight"), ("cube5", 13, "path"), ("desia-bunny", 40, "straight")],  # the last: deep mode
 )
-def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces, removal):
+def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces, removal, monkeypatch):
     task = make_task(shape, pieces, removal)
+    monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)  # threads from the first node, however fast
+    sampled_on: set[str] = set()
+    sample = solver.sample_accepted
+
+    def watched(*args, **kwargs):
+        sampled_on.add(threading.current_thread().name)
+        return sample(*args, **kwargs)
+
+    monkeypatch.setattr(solver, "sample_accepted", watched)
     runs = []
     for threads in (1, 3):
         stats = SearchStats()
@@ -68,8 +75,22 @@ def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces
         ]
         runs.append((found, stats.expansions, stats.restarts))
     (plain, expansions, restarts), (threaded, t_expansions, t_restarts) = runs
+    assert any(name.startswith("rllock-lookahead") for name in sampled_on)
     assert len(plain) == 2 and (t_expansions, t_restarts) == (expansions, restarts)
     assert all(np.array_equal(a, b) for a, b in zip(plain, threaded, strict=True))
+
+
+def test_threads_are_used_only_once_samples_are_long_enough_to_share():
+    pool = SamplingPool(ThreadPoolExecutor(2))
+    try:
+        assert not pool.worth_it(8)  # nothing measured yet
+        pool.took(1e-4)
+        assert not pool.worth_it(8)
+        for _ in range(20):
+            pool.took(2e-3)
+        assert pool.worth_it(8) and not pool.worth_it(1)
+    finally:
+        pool.executor.shutdown()
 
 
 def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_path):
@@ -85,6 +106,22 @@ def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_
         assert method["workers"] == 2 and meta["seed"] in {worker_seed(0, 0), worker_seed(0, 1)}
     code, _, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--workers", "0", "--out", str(out))
     assert code == 2 and err.strip() == "rllock: error: --workers must be at least 1, got 0"
+    code, _, err = run_cli("solve", "--shape", "cube4", "--pieces", "7", "--threads", "0", "--out", str(out))
+    assert code == 2 and err.strip() == "rllock: error: --threads must be at least 1, got 0"
+    code, _, err = run_cli(
+        "solve",
+        "--shape",
+        "cube4",
+        "--pieces",
+        "7",
+        "--threads",
+        "2",
+        "--address",
+        "127.0.0.1:9",
+        "--out",
+        str(out),
+    )
+    assert code == 2 and err.strip().startswith("rllock: error: --threads is for a search on this machine")
 
 
 @pytest.mark.slow

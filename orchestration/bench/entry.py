@@ -246,8 +246,10 @@ def cmd_bench_shapes(args: argparse.Namespace) -> int:
     )
 
     named = choices(args.arms, "--arms", ("solver", "general"))
-    workers = list(counts(args.workers, "--workers"))
-    arms = [a for name in named for a in ([solver_arm(w) for w in workers] if name == "solver" else [name])]
+    layouts = [(w, t) for w in counts(args.workers, "--workers") for t in counts(args.threads, "--threads")]
+    arms = [
+        a for name in named for a in ([solver_arm(*wt) for wt in layouts] if name == "solver" else [name])
+    ]
     removals = list(REMOVAL_MODES) if args.removal == "both" else [args.removal]
     # --mesh alone benches the mesh; otherwise the named shapes, by default the five large ones
     shapes = items(args.shapes, "--shapes") if args.shapes else [] if args.mesh else list(SHAPES)

@@ -73,17 +73,17 @@ def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> 
 
 
 def solver_cell(
-    task: Task, time_limit: float, seed: int, guide: Guide | None = None, workers: int = 1
+    task: Task, time_limit: float, seed: int, guide: Guide | None = None, workers: int = 1, threads: int = 1
 ) -> Cell:
     """Seconds to the search's first valid assembly (verified), with `guide` when given, by `workers`
-    searches at once (`rllock.search.portfolio`; their start-up counted)."""
+    searches at once (`rllock.search.portfolio`; their start-up counted), worker 0 sampling on `threads`."""
     stats = SearchStats()
     start = time.perf_counter()
     if workers == 1:
-        searches = search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide)
+        searches = search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide, threads=threads)
     else:
         searches = portfolio_search(
-            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide
+            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide, threads=threads
         )
     for found in searches:
         seconds = time.perf_counter() - start
@@ -106,13 +106,16 @@ def general_cell(task: Task, time_limit: float, seed: int, batch: int, simulatio
     return Cell(arm.seconds if arm.valid else None, time_limit)
 
 
-def solver_arm(workers: int) -> str:
-    """The solver arm's name with `workers` searches at once: "solver", "solver x2", ..."""
-    return "solver" if workers == 1 else f"solver x{workers}"
+def solver_arm(workers: int, threads: int = 1) -> str:
+    """The solver arm's name with `workers` searches at once and `threads` sampling threads in worker 0:
+    "solver", "solver x2", "solver t2", "solver x2 t2", ..."""
+    return "solver" + (f" x{workers}" if workers > 1 else "") + (f" t{threads}" if threads > 1 else "")
 
 
-def solver_workers(arm: str) -> int:
-    return 1 if arm == "solver" else int(arm.removeprefix("solver x"))
+def solver_layout(arm: str) -> tuple[int, int]:
+    """(workers, threads) of a solver arm's name."""
+    marks = {word[0]: int(word[1:]) for word in arm.split()[1:]}
+    return marks.get("x", 1), marks.get("t", 1)
 
 
 @dataclass(frozen=True)
@@ -155,7 +158,8 @@ def bench_shapes(
                     if reason is not None:
                         cells[arm] = Cell(None, time_limit, impossible=reason)
                     elif arm.startswith("solver"):
-                        cells[arm] = solver_cell(task, time_limit, seed, workers=solver_workers(arm))
+                        workers, threads = solver_layout(arm)
+                        cells[arm] = solver_cell(task, time_limit, seed, workers=workers, threads=threads)
                     else:
                         cells[arm] = general_cell(task, time_limit, seed, batch, simulations)
                 row = Row(shape.label, task.size, task.topology.dims, k, removal, cells)

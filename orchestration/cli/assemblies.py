@@ -83,6 +83,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         raise RLLockError(f"--workers must be at least 1, got {args.workers}")
+    if args.threads < 1:
+        raise RLLockError(f"--threads must be at least 1, got {args.threads}")
+    if args.threads > 1 and args.address is not None:
+        raise RLLockError("--threads is for a search on this machine; with --address each worker has one CPU")
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     check_feasible(task)
     guide = None
@@ -168,9 +172,11 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
         )
         on_ray = args.address is not None
         if args.workers == 1 and not on_ray:
-            found = search(task, seed=args.seed, **common)
+            found = search(task, seed=args.seed, threads=args.threads, **common)
         else:
-            found = portfolio_search(task, seed=args.seed, workers=args.workers, on_ray=on_ray, **common)
+            found = portfolio_search(
+                task, seed=args.seed, workers=args.workers, on_ray=on_ray, threads=args.threads, **common
+            )
         for f in found:
             folder = out / f"assembly_{len(written) + 1:03d}"
             write_assembly(
@@ -323,9 +329,15 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         "--workers",
         type=int,
         default=1,
-        help="searches run at once, one process each, from different seeds; the first assemblies found "
-        "are kept. Worker 0 (--seed) samples on up to this many threads and the others use the cycles it "
-        "leaves (default %(default)s: the plain search, reproducible by --seed)",
+        help="searches run at once, one core each, from different seeds; the first assemblies found are "
+        "kept (default %(default)s: the plain search, reproducible by --seed)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="threads that sample a node's children in the search of --seed: the same search, node for "
+        "node, sooner where nodes are costly (default %(default)s; on this machine, not with --address)",
     )
     p.add_argument(
         "--address",

@@ -5,12 +5,12 @@ another on the same task. N seeds side by side, the first assembly taken, cut th
 N workers gain more than their share of a single search's time. Worker 0 runs the given seed, so one
 worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 
-On one machine worker 0 is also the fastest: it runs in this process (no start-up) and samples a node's
-children on up to N threads at once (`solver.search(threads=)`, the same search node for node), and the
-other workers run in the idle scheduling class, on the cycles it leaves (a node with one child, the last
-of an odd number, samples too quick to share): so N workers find the single search's assembly sooner
-than one does, on every seed, and spend what is left on other seeds. Measured on 2 cores: worker 0 alone
-is 1.5-1.7x as fast as one worker where a node's samples take milliseconds.
+On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process
+has compiled), and may sample a node's children on several threads (`threads`, `solve --threads`: the
+same search node for node, sooner); the others are spawned processes. Measured on 2 cores: two searches
+side by side each run as fast as one alone, while one search on two threads runs 1.4-1.7x as fast
+(0.9-2.8 ms samples; 1.0x on 0.35 ms ones, where the threads are left unused): where run times are spread,
+a second seed gains more than a second thread; where they are not, the thread gains more.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
-import os
 import queue as queues
 import signal
 import threading
@@ -79,29 +78,9 @@ def _work(
         out.put(("done", worker, stats))
 
 
-def _to_background() -> None:
-    """The calling thread (or process) takes only the cycles the others leave: Linux's idle scheduling
-    class, which a waking worker 0 preempts at once (measured: worker 0 ran 3% slower beside a busy
-    idle-class process, 14% beside one at nice 19); the lowest nice elsewhere. For good: an unprivileged
-    thread cannot come back."""
-    if hasattr(os, "SCHED_IDLE"):
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    else:
-        os.nice(19)
-
-
-def _work_in_background(*args: Any) -> None:
+def _work_locally(*args: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _to_background()
     _work(*args)
-
-
-def _start_in_background(processes: list[Any]) -> None:
-    """Start `processes` from a thread in the background class, which they inherit from their first
-    instruction: their start-up (imports, compiled code loaded) then takes no cycles from worker 0."""
-    _to_background()
-    for p in processes:
-        p.start()
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -125,17 +104,18 @@ def portfolio_search(
     report: Callable[[SearchStats], None] | None = None,
     guide: Any = None,
     on_ray: bool = False,
+    threads: int = 1,
 ) -> Generator[Found, None, None]:
     """`solver.search` in `workers` processes (module docstring), or with `on_ray` in as many Ray actors on
     the cluster this process has joined: yields the distinct assemblies in the order they arrive, `seconds`
     counted by the parent, until the time limit or `stop()`; the caller stops it by closing the generator
-    (or breaking out of its loop). `stats` sums the workers'."""
+    (or breaking out of its loop). `stats` sums the workers'. `threads`: worker 0's sampling threads on
+    this machine (a Ray worker has its one CPU)."""
     stats = SearchStats() if stats is None else stats
-    # Each worker's arguments of `_work` after the queue and the stop flag, which its crew adds. A Ray
-    # worker has its one CPU to itself: no lookahead threads.
-    threads = 1 if on_ray else min(workers, config.children)
+    # Each worker's arguments of `_work` after the queue and the stop flag, which its crew adds.
+    first = 1 if on_ray else threads
     jobs = [
-        (task, worker_seed(seed, i), time_limit, config, guide, i, threads if i == 0 else 1)
+        (task, worker_seed(seed, i), time_limit, config, guide, i, first if i == 0 else 1)
         for i in range(workers)
     ]
     crew: _LocalCrew | _RayCrew = _RayCrew(jobs) if on_ray else _LocalCrew(jobs)
@@ -183,23 +163,21 @@ def portfolio_search(
 
 class _LocalCrew:
     """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), the
-    others as spawned processes in the background (`_work_in_background`); a multiprocessing queue and
-    event."""
+    others as spawned processes; a multiprocessing queue and event."""
 
     def __init__(self, jobs: list[tuple]) -> None:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         self.first = threading.Thread(target=_work, args=(self.out, self.event, *jobs[0]), daemon=True)
         self.processes = [
-            context.Process(target=_work_in_background, args=(self.out, self.event, *job), daemon=True)
+            context.Process(target=_work_locally, args=(self.out, self.event, *job), daemon=True)
             for job in jobs[1:]
         ]
 
     def start(self) -> None:
         self.first.start()
-        starter = threading.Thread(target=_start_in_background, args=(self.processes,))
-        starter.start()
-        starter.join()
+        for p in self.processes:
+            p.start()
 
     def get(self, timeout: float) -> tuple | None:
         try:
