@@ -8,8 +8,8 @@ worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process
 has compiled), and may sample a node's children on several threads (`threads`, `solve --threads`: the
 same search node for node, sooner); the others are spawned processes. Measured on 2 cores: two searches
-side by side each run as fast as one alone, while one search on two threads runs 1.4-1.7x as fast
-(0.9-2.8 ms samples; 1.0x on 0.35 ms ones, where the threads are left unused): where run times are spread,
+side by side each run as fast as one alone, while one search on two threads runs 1.5-1.7x as fast
+(1.4-5.6 ms a node expansion; 1.0x at 0.34 ms, where the threads are left unused): where run times are spread,
 a second seed gains more than a second thread; where they are not, the thread gains more.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
