@@ -15,8 +15,8 @@ from helpers import actor_nodes, run_cli
 from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
 from rllock.files.assembly import read_assembly
-from rllock.search import solver
-from rllock.search.portfolio import portfolio_search, worker_seed
+from rllock.search import portfolio, solver
+from rllock.search.portfolio import portfolio_search, shares_cores, worker_seed
 from rllock.search.solver import SamplingPool, SearchStats, search
 
 
@@ -41,9 +41,7 @@ def test_workers_stop_at_the_time_limit_with_their_progress_summed():
     task = make_task("desia-bunny", 80)  # none in a few seconds
     stats, reports = SearchStats(), []
     started = time.monotonic()
-    found = list(
-        portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append, threads=2)
-    )
+    found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
     elapsed = time.monotonic() - started
     assert not found and 4 <= elapsed < 7, elapsed
     assert reports and stats.expansions > 0 and stats.restarts >= 2 and 0 < stats.placed < 79
@@ -89,8 +87,65 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
         for _ in range(20):
             pool.took(2e-3)
         assert pool.worth_it(8) and not pool.worth_it(1)
+        pool.allowed = False  # a portfolio's other workers have the cores
+        assert not pool.worth_it(8)
+        assert pool.samples == 21 and pool.seconds == pytest.approx(1e-4 + 20 * 2e-3)
     finally:
         pool.executor.shutdown()
+
+
+def test_worker_0_shares_the_cores_from_the_upper_bound_and_gives_them_back_below_the_lower():
+    low, high = portfolio.APART_BELOW_SECONDS, portfolio.SHARED_FROM_SECONDS
+    assert low < high
+    between = (low + high) / 2
+    assert not shares_cores(False, between) and shares_cores(True, between)  # each stays as it is
+    assert shares_cores(False, high) and not shares_cores(True, low * 0.99)
+
+
+def _process_state(pid: int) -> str:
+    """R running, S sleeping, T stopped ... (proc(5)); "gone" once it has ended."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return "gone"
+
+
+def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(monkeypatch):
+    """With every sample counted costly, worker 0 samples on threads and worker 1 is stopped (SIGSTOP);
+    once samples count cheap it runs again; at the end no worker and no sampling thread is left."""
+    task = make_task("desia-bunny", 80)  # none in a few seconds
+    monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
+    monkeypatch.setattr(portfolio, "SHARED_FROM_SECONDS", 0.0)
+    monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)
+    sampled_on: list[tuple[float, str]] = []
+    sample = solver.sample_accepted
+
+    def watched(*args, **kwargs):
+        sampled_on.append((time.monotonic(), threading.current_thread().name))
+        return sample(*args, **kwargs)
+
+    monkeypatch.setattr(solver, "sample_accepted", watched)
+    seen: list[tuple[float, list[str]]] = []
+    started = time.monotonic()
+
+    def stop() -> bool:
+        now = time.monotonic() - started
+        seen.append((now, [_process_state(p.pid) for p in mp.active_children() if p.pid is not None]))
+        if now > 4:  # from here every sample counts cheap
+            monkeypatch.setattr(portfolio, "SHARED_FROM_SECONDS", 1.0)
+            monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", 1.0)
+        return now > 8
+
+    assert not list(portfolio_search(task, seed=0, workers=2, time_limit=30, stop=stop))
+    paused = [t for t, states in seen if states == ["T"]]
+    assert paused and min(paused) < 4, seen
+    assert all(states == ["T"] for t, states in seen if 3 < t < 4)
+    assert all(states and "T" not in states for t, states in seen if 6 < t < 8), seen
+    shared = [t - started for t, name in sampled_on if name.startswith("rllock-lookahead")]
+    assert shared and min(shared) < 4 and max(shared) < 6  # worker 0 alone again once the cores went back
+    assert not mp.active_children()
+    assert not [t for t in threading.enumerate() if t.name.startswith("rllock-lookahead")]
 
 
 def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_path):
@@ -122,6 +177,10 @@ def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_
         str(out),
     )
     assert code == 2 and err.strip().startswith("rllock: error: --threads is for a search on this machine")
+    code, _, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--threads", "2", "--workers", "2", "--out", str(out)
+    )
+    assert code == 2 and err.strip().startswith("rllock: error: --threads is for one search; --workers N")
 
 
 @pytest.mark.slow

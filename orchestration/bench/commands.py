@@ -176,8 +176,8 @@ def _add_shapes(bench: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--threads",
         default="1",
-        help="worker 0's sampling threads, comma-separated: one arm for each with each --workers (e.g. "
-        "1,2; default 1)",
+        help="one search's sampling threads, comma-separated: one arm each, beside the --workers arms "
+        "(e.g. 1,2; default 1)",
     )
     p.add_argument("--batch", type=int, default=16, help="general's lockstep episodes per round")
     add_simulations_arg(p, " for general")

@@ -246,7 +246,8 @@ def cmd_bench_shapes(args: argparse.Namespace) -> int:
     )
 
     named = choices(args.arms, "--arms", ("solver", "general"))
-    layouts = [(w, t) for w in counts(args.workers, "--workers") for t in counts(args.threads, "--threads")]
+    layouts = [(w, 1) for w in counts(args.workers, "--workers")]
+    layouts += [(1, t) for t in counts(args.threads, "--threads") if (1, t) not in layouts]
     arms = [
         a for name in named for a in ([solver_arm(*wt) for wt in layouts] if name == "solver" else [name])
     ]

@@ -76,14 +76,16 @@ def solver_cell(
     task: Task, time_limit: float, seed: int, guide: Guide | None = None, workers: int = 1, threads: int = 1
 ) -> Cell:
     """Seconds to the search's first valid assembly (verified), with `guide` when given, by `workers`
-    searches at once (`rllock.search.portfolio`; their start-up counted), worker 0 sampling on `threads`."""
+    searches at once (`rllock.search.portfolio`; their start-up counted) or one on `threads` threads."""
     stats = SearchStats()
     start = time.perf_counter()
+    if threads > 1 and workers > 1:
+        raise ValueError("a portfolio shares its cores between seeds and threads itself")
     if workers == 1:
         searches = search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide, threads=threads)
     else:
         searches = portfolio_search(
-            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide, threads=threads
+            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide
         )
     for found in searches:
         seconds = time.perf_counter() - start
@@ -107,8 +109,8 @@ def general_cell(task: Task, time_limit: float, seed: int, batch: int, simulatio
 
 
 def solver_arm(workers: int, threads: int = 1) -> str:
-    """The solver arm's name with `workers` searches at once and `threads` sampling threads in worker 0:
-    "solver", "solver x2", "solver t2", "solver x2 t2", ..."""
+    """The solver arm's name with `workers` searches at once or one on `threads` sampling threads:
+    "solver", "solver x2", "solver t2", ..."""
     return "solver" + (f" x{workers}" if workers > 1 else "") + (f" t{threads}" if threads > 1 else "")
 
 

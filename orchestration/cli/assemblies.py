@@ -87,6 +87,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
         raise RLLockError(f"--threads must be at least 1, got {args.threads}")
     if args.threads > 1 and args.address is not None:
         raise RLLockError("--threads is for a search on this machine; with --address each worker has one CPU")
+    if args.threads > 1 and args.workers > 1:
+        raise RLLockError(
+            "--threads is for one search; --workers N shares its N cores between seeds and threads"
+        )
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     check_feasible(task)
     guide = None
@@ -174,9 +178,7 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
         if args.workers == 1 and not on_ray:
             found = search(task, seed=args.seed, threads=args.threads, **common)
         else:
-            found = portfolio_search(
-                task, seed=args.seed, workers=args.workers, on_ray=on_ray, threads=args.threads, **common
-            )
+            found = portfolio_search(task, seed=args.seed, workers=args.workers, on_ray=on_ray, **common)
         for f in found:
             folder = out / f"assembly_{len(written) + 1:03d}"
             write_assembly(
@@ -329,15 +331,16 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         "--workers",
         type=int,
         default=1,
-        help="searches run at once, one core each, from different seeds; the first assemblies found are "
-        "kept (default %(default)s: the plain search, reproducible by --seed)",
+        help="searches run at once from different seeds, on N cores: where nodes are costly the first "
+        "samples on the others' cores while they wait; the first assemblies found are kept (default "
+        "%(default)s: the plain search, reproducible by --seed)",
     )
     p.add_argument(
         "--threads",
         type=int,
         default=1,
         help="threads that sample a node's children in the search of --seed: the same search, node for "
-        "node, sooner where nodes are costly (default %(default)s; on this machine, not with --address)",
+        "node, sooner where nodes are costly (default %(default)s; one worker on this machine)",
     )
     p.add_argument(
         "--address",

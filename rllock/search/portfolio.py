@@ -1,4 +1,4 @@
-"""Several searches at once, one process each: a portfolio of seeds (`rllock solve --workers N`).
+"""Several searches at once: a portfolio of seeds (`rllock solve --workers N`).
 
 The search's run times are heavy-tailed (`rllock.search.solver`): one seed may need ten times as long as
 another on the same task. N seeds side by side, the first assembly taken, cut that tail, so on hard cells
@@ -6,11 +6,15 @@ N workers gain more than their share of a single search's time. Worker 0 runs th
 worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 
 On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process
-has compiled), and may sample a node's children on several threads (`threads`, `solve --threads`: the
-same search node for node, sooner); the others are spawned processes. Measured on 2 cores: two searches
-side by side each run as fast as one alone, while one search on two threads runs 1.5-1.7x as fast
-(1.4-5.6 ms a node expansion; 1.0x at 0.34 ms, where the threads are left unused): where run times are spread,
-a second seed gains more than a second thread; where they are not, the thread gains more.
+has compiled); the others are spawned processes. Worker 0 may also sample a node's children on threads
+(the same search node for node, sooner: `solver.SamplingPool`), and which pays depends on what one
+sample costs. Measured on 2 cores: two searches side by side each run as fast as one alone; one search
+on two threads runs 1.5-1.7x as fast where a sample costs 1.4-5.6 ms, 1.0x at 0.3 ms. A second seed
+pays by the spread of run times, a second thread surely but by less. So the crew watches worker 0's
+running mean of one sample's cost, which grows as a search goes deeper (spot at resolution 30: 1.3 ms in
+its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS worker 0 takes the cores
+of workers 1..T-1 on T threads and those workers are paused (SIGSTOP: they keep their place and use no
+CPU); below APART_BELOW_SECONDS they go on and worker 0 samples alone again.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -25,20 +29,40 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue as queues
 import signal
 import threading
 import time
 from collections.abc import Callable, Generator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from rllock.core.env import Task, assembly_key
 from rllock.search.base import derive_seed
-from rllock.search.solver import PROGRESS_EVERY, Found, SearchConfig, SearchStats, _never, search
+from rllock.search.solver import (
+    PROGRESS_EVERY,
+    Found,
+    SamplingPool,
+    SearchConfig,
+    SearchStats,
+    _never,
+    search,
+)
 
 log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
+
+# Worker 0 takes the cores of the workers it pauses from this running mean of one sample's seconds, and
+# gives them back below the second. Chosen from five hard cells on 2 cores (docs/benchmarks.md, "Every
+# core, a third time"): mean sample costs 0.28 (cube4 K=9), 1.15 (desia-dog K=50) and 1.7-2.0 ms (bunny
+# mesh at 16, K=55), where two seeds gained more than two threads; 2.5 (desia-bunny K=80 path) and 3-5 ms
+# (spot mesh at 30, K=255), where two threads gained more. The gap keeps a mean near one bound from
+# switching at every node.
+SHARED_FROM_SECONDS = 2.3e-3
+APART_BELOW_SECONDS = 2.0e-3
+BALANCE_EVERY_SECONDS = 1.0  # the mean is taken over this long a window: single samples vary tenfold
 
 
 def worker_seed(seed: int, worker: int) -> int:
@@ -55,7 +79,7 @@ def _work(
     config: SearchConfig,
     guide: Any,
     worker: int,
-    threads: int,
+    pool: SamplingPool | None,
 ) -> None:
     stats = SearchStats()
     try:
@@ -68,7 +92,7 @@ def _work(
             stop=halt.is_set,
             report=lambda s: out.put(("progress", worker, s)),
             guide=guide,
-            threads=threads,
+            pool=pool,
         )
         for f in found:
             out.put(("found", worker, f))
@@ -81,6 +105,12 @@ def _work(
 def _work_locally(*args: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _work(*args)
+
+
+def shares_cores(shared: bool, mean_sample_seconds: float) -> bool:
+    """Whether worker 0 should sample on the lent workers' cores, now `shared` or not, when one of its
+    samples costs `mean_sample_seconds`."""
+    return mean_sample_seconds >= (APART_BELOW_SECONDS if shared else SHARED_FROM_SECONDS)
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -104,21 +134,17 @@ def portfolio_search(
     report: Callable[[SearchStats], None] | None = None,
     guide: Any = None,
     on_ray: bool = False,
-    threads: int = 1,
 ) -> Generator[Found, None, None]:
-    """`solver.search` in `workers` processes (module docstring), or with `on_ray` in as many Ray actors on
-    the cluster this process has joined: yields the distinct assemblies in the order they arrive, `seconds`
-    counted by the parent, until the time limit or `stop()`; the caller stops it by closing the generator
-    (or breaking out of its loop). `stats` sums the workers'. `threads`: worker 0's sampling threads on
-    this machine (a Ray worker has its one CPU)."""
+    """`solver.search` in `workers` processes, worker 0 sharing the cores by what its samples cost (module
+    docstring), or with `on_ray` in as many Ray actors of one CPU on the cluster this process has joined:
+    yields the distinct assemblies in the order they arrive, `seconds` counted by the parent, until the
+    time limit or `stop()`; the caller stops it by closing the generator (or breaking out of its loop).
+    `stats` sums the workers'."""
     stats = SearchStats() if stats is None else stats
-    # Each worker's arguments of `_work` after the queue and the stop flag, which its crew adds.
-    first = 1 if on_ray else threads
-    jobs = [
-        (task, worker_seed(seed, i), time_limit, config, guide, i, first if i == 0 else 1)
-        for i in range(workers)
-    ]
-    crew: _LocalCrew | _RayCrew = _RayCrew(jobs) if on_ray else _LocalCrew(jobs)
+    # Each worker's arguments of `_work` after the queue and the stop flag, which its crew adds; worker
+    # 0's sampling pool is the local crew's to add.
+    jobs = [(task, worker_seed(seed, i), time_limit, config, guide, i, None) for i in range(workers)]
+    crew: _LocalCrew | _RayCrew = _RayCrew(jobs) if on_ray else _LocalCrew(jobs, config.children)
     start = time.monotonic()
     deadline, last = start + time_limit, start
     latest: dict[int, SearchStats] = {}
@@ -127,6 +153,7 @@ def portfolio_search(
     try:
         crew.start()
         while len(done) < workers and time.monotonic() < deadline and not stop():
+            crew.balance(done)
             message = crew.get(timeout=0.2)
             if message is None:
                 crew.check_alive(done)
@@ -162,22 +189,64 @@ def portfolio_search(
 
 
 class _LocalCrew:
-    """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), the
-    others as spawned processes; a multiprocessing queue and event."""
+    """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), on a
+    sampling pool of up to `children` threads, one a worker; the others as spawned processes, the first
+    of them paused while worker 0 has their cores (module docstring); a multiprocessing queue and event."""
 
-    def __init__(self, jobs: list[tuple]) -> None:
+    def __init__(self, jobs: list[tuple], children: int) -> None:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
-        self.first = threading.Thread(target=_work, args=(self.out, self.event, *jobs[0]), daemon=True)
+        threads = min(len(jobs), children)
+        self.pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead"), allowed=False)
+        self.first = threading.Thread(
+            target=_work, args=(self.out, self.event, *jobs[0][:-1], self.pool), daemon=True
+        )
         self.processes = [
             context.Process(target=_work_locally, args=(self.out, self.event, *job), daemon=True)
             for job in jobs[1:]
         ]
+        self.lent = self.processes[: threads - 1]  # the workers whose cores worker 0 takes
+        self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
 
     def start(self) -> None:
         self.first.start()
         for p in self.processes:
             p.start()
+
+    def balance(self, done: set[int]) -> None:
+        """Every BALANCE_EVERY_SECONDS: worker 0 on threads with the lent workers paused, or every worker
+        on a core of its own, by the mean cost of worker 0's samples in that window (`shares_cores`)."""
+        now, pool = time.monotonic(), self.pool
+        then, seconds, samples = self.window
+        if not self.lent or now - then < BALANCE_EVERY_SECONDS:
+            return
+        self.window = (now, pool.seconds, pool.samples)
+        if pool.samples == samples:
+            return
+        mean = (pool.seconds - seconds) / (pool.samples - samples)
+        shared = shares_cores(pool.allowed, mean) and 0 not in done
+        if shared != pool.allowed:
+            if shared:
+                self._signal(self.lent, signal.SIGSTOP)
+            pool.allowed = shared
+            if not shared:
+                self._signal(self.lent, signal.SIGCONT)
+            log.info(
+                "a sample costs %.1f ms: %s",
+                1e3 * mean,
+                f"worker 0 samples on the cores of {len(self.lent)} paused worker(s)"
+                if shared
+                else "every worker searches on a core of its own",
+            )
+
+    @staticmethod
+    def _signal(processes: list[Any], sig: int) -> None:
+        for p in processes:
+            if p.pid is not None and p.exitcode is None:
+                try:
+                    os.kill(p.pid, sig)
+                except ProcessLookupError:  # it ended after the check
+                    pass
 
     def get(self, timeout: float) -> tuple | None:
         try:
@@ -193,6 +262,7 @@ class _LocalCrew:
 
     def halt(self) -> None:
         self.event.set()
+        self._signal(self.lent, signal.SIGCONT)  # a paused worker could not see the event
 
     def running(self) -> bool:
         return self.first.is_alive() or any(p.is_alive() for p in self.processes)
@@ -204,6 +274,7 @@ class _LocalCrew:
                 p.terminate()
             p.join(timeout=1.0)
         self.first.join(timeout=JOIN_SECONDS)
+        self.pool.executor.shutdown(cancel_futures=True)
 
 
 # How often a Ray worker asks the flag actor whether to stop: a remote call per node expansion would cost
@@ -257,6 +328,9 @@ class _RayCrew:
             return self.out.get(timeout=timeout)
         except Empty:
             return None
+
+    def balance(self, done: set[int]) -> None:
+        """Nothing to share: each Ray worker has its one CPU."""
 
     def check_alive(self, done: set[int]) -> None:
         """A worker whose actor died (its node lost, killed) is an error, not a silent hang."""

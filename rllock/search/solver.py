@@ -167,16 +167,24 @@ THREADED_FROM_SECONDS = 0.5e-3
 
 @dataclass
 class SamplingPool:
-    """The threads a node's children are sampled on, and a running mean of one sample's seconds."""
+    """The threads a node's children are sampled on, a running mean of one sample's seconds, and the
+    samples' seconds and count in all. A portfolio (`rllock.search.portfolio`) turns its worker 0's
+    threads off (`allowed`) while the other workers have the cores; the figures are kept either way."""
 
     executor: ThreadPoolExecutor
     sample_seconds: float = 0.0
+    allowed: bool = True
+    seconds: float = 0.0
+    samples: int = 0
 
     def worth_it(self, samples: int) -> bool:
-        return samples > 1 and self.sample_seconds >= THREADED_FROM_SECONDS
+        return self.allowed and samples > 1 and self.sample_seconds >= THREADED_FROM_SECONDS
 
     def took(self, seconds: float) -> None:
+        # Called from the pool's threads at once: an update lost between two of them only blurs a mean.
         self.sample_seconds += 0.1 * (seconds - self.sample_seconds)
+        self.seconds += seconds
+        self.samples += 1
 
 
 @dataclass
@@ -328,21 +336,25 @@ def search(
     guide: Guide | None = None,
     record: Record | None = None,
     threads: int = 1,
+    pool: SamplingPool | None = None,
 ) -> Generator[Found, None, None]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
     to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network orders and prunes
     the children (`_dfs`); `record` takes the states the search leaves with their lookahead shares. A
+    node's children are sampled on `threads` threads, or on a `pool` the caller owns (and shuts down). A
     task that provably has no assembly is an error at once (`rllock.core.feasibility`)."""
     if threads < 1:
         raise ValueError(f"threads must be at least 1, got {threads}")
+    if threads > 1 and pool is not None:
+        raise ValueError("give threads or a pool, not both")
     check_feasible(task)
-    pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead")) if threads > 1 else None
+    own = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead")) if threads > 1 else None
     try:
-        yield from _search(task, seed, time_limit, config, stats, stop, report, guide, record, pool)
+        yield from _search(task, seed, time_limit, config, stats, stop, report, guide, record, own or pool)
     finally:
-        if pool is not None:
-            pool.executor.shutdown(cancel_futures=True)
+        if own is not None:
+            own.executor.shutdown(cancel_futures=True)
 
 
 def _search(
