@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -117,6 +122,7 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
     task = make_task("desia-bunny", 80)  # none in a few seconds
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
     monkeypatch.setattr(portfolio, "SHARED_FROM_SECONDS", 0.0)
+    monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", 0.0)
     monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)
     sampled_on: list[tuple[float, str]] = []
     sample = solver.sample_accepted
@@ -140,7 +146,7 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
     assert not list(portfolio_search(task, seed=0, workers=2, time_limit=30, stop=stop))
     paused = [t for t, states in seen if states == ["T"]]
     assert paused and min(paused) < 4, seen
-    assert all(states == ["T"] for t, states in seen if 3 < t < 4)
+    assert all(states == ["T"] for t, states in seen if 3 < t < 4), seen
     assert all(states and "T" not in states for t, states in seen if 6 < t < 8), seen
     shared = [t - started for t, name in sampled_on if name.startswith("rllock-lookahead")]
     assert shared and min(shared) < 4 and max(shared) < 6  # worker 0 alone again once the cores went back
@@ -223,3 +229,42 @@ def test_solve_on_an_address_nothing_answers_is_one_line_at_once(tmp_path):
     assert code == 2 and time.monotonic() - started < 30
     assert err.strip().startswith(f"rllock: error: cannot reach the Ray cluster at 127.0.0.1:{port}: ")
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+PAUSED_PORTFOLIO = """
+import multiprocessing as mp
+from rllock.core.env import make_task
+from rllock.search import portfolio
+
+
+def stop():
+    for p in mp.active_children():
+        with open(f"/proc/{p.pid}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] == "T":
+                print(p.pid, flush=True)
+    return False
+
+
+if __name__ == "__main__":
+    portfolio.BALANCE_EVERY_SECONDS = 0.1
+    portfolio.SHARED_FROM_SECONDS = portfolio.APART_BELOW_SECONDS = 0.0  # every sample is costly
+    task = make_task("desia-bunny", 80)
+    list(portfolio.portfolio_search(task, seed=0, workers=2, time_limit=60, stop=stop))
+"""
+
+
+def test_a_paused_worker_does_not_outlive_its_parent_killed_outright(tmp_path):
+    script = tmp_path / "paused.py"
+    script.write_text(textwrap.dedent(PAUSED_PORTFOLIO))
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        worker = int(parent.stdout.readline())  # the first line comes once worker 1 is stopped
+        assert _process_state(worker) == "T"
+    finally:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while _process_state(worker) not in ("gone", "Z") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _process_state(worker) in ("gone", "Z")  # killed (a zombie until something reaps it)

@@ -32,6 +32,7 @@ import multiprocessing as mp
 import os
 import queue as queues
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Generator
@@ -102,9 +103,30 @@ def _work(
         out.put(("done", worker, stats))
 
 
-def _work_locally(*args: Any) -> None:
+def _work_locally(out: Any, halt: Any, *job: Any) -> None:
+    """`_work` in a spawned process, which says when it is ready: from then on it may be paused."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _work(*args)
+    if _die_with_parent():
+        out.put(("ready", job[JOB_WORKER], None))
+        _work(out, halt, *job)
+
+
+PR_SET_PDEATHSIG = 1  # prctl(2)
+
+
+JOB_WORKER = 5  # the worker's index in a job: `_work`'s arguments after the queue and the stop flag
+
+
+def _die_with_parent() -> bool:
+    """Whether to go on: on Linux the kernel is asked to SIGKILL this worker when the thread that started
+    it ends, so a worker paused by SIGSTOP does not stay behind, stopped for good, when its parent is
+    killed outright (SIGKILL reaches a stopped process). False if the parent is already gone."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    parent = mp.parent_process()
+    return parent is None or parent.is_alive()
 
 
 def shares_cores(shared: bool, mean_sample_seconds: float) -> bool:
@@ -166,6 +188,8 @@ def portfolio_search(
                     now = time.monotonic()
                     yield Found(payload.labels, now - last, payload.expansions, payload.seed)
                     last = now
+            elif kind == "ready":
+                crew.ready(worker)
             elif kind == "error":
                 raise RuntimeError(f"search worker {worker} failed: {payload}")
             else:
@@ -191,13 +215,15 @@ def portfolio_search(
 class _LocalCrew:
     """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), on a
     sampling pool of up to `children` threads, one a worker; the others as spawned processes, the first
-    of them paused while worker 0 has their cores (module docstring); a multiprocessing queue and event."""
+    of them (`lent`) paused while worker 0 has their cores (module docstring), which it has from the
+    start: a lent worker is paused once it has said it is ready, until the first window's mean says
+    otherwise; a multiprocessing queue and event."""
 
     def __init__(self, jobs: list[tuple], children: int) -> None:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         threads = min(len(jobs), children)
-        self.pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead"), allowed=False)
+        self.pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead"), allowed=threads > 1)
         self.first = threading.Thread(
             target=_work, args=(self.out, self.event, *jobs[0][:-1], self.pool), daemon=True
         )
@@ -206,12 +232,20 @@ class _LocalCrew:
             for job in jobs[1:]
         ]
         self.lent = self.processes[: threads - 1]  # the workers whose cores worker 0 takes
+        self.pausable: list[Any] = []  # the lent workers that are ready (`_work_locally`)
         self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
 
     def start(self) -> None:
         self.first.start()
         for p in self.processes:
             p.start()
+
+    def ready(self, worker: int) -> None:
+        lent = self.processes[worker - 1]
+        if lent in self.lent:
+            self.pausable.append(lent)
+            if self.pool.allowed:
+                self._signal([lent], signal.SIGSTOP)
 
     def balance(self, done: set[int]) -> None:
         """Every BALANCE_EVERY_SECONDS: worker 0 on threads with the lent workers paused, or every worker
@@ -227,10 +261,10 @@ class _LocalCrew:
         shared = shares_cores(pool.allowed, mean) and 0 not in done
         if shared != pool.allowed:
             if shared:
-                self._signal(self.lent, signal.SIGSTOP)
+                self._signal(self.pausable, signal.SIGSTOP)
             pool.allowed = shared
             if not shared:
-                self._signal(self.lent, signal.SIGCONT)
+                self._signal(self.pausable, signal.SIGCONT)
             log.info(
                 "a sample costs %.1f ms: %s",
                 1e3 * mean,
@@ -328,6 +362,9 @@ class _RayCrew:
             return self.out.get(timeout=timeout)
         except Empty:
             return None
+
+    def ready(self, worker: int) -> None:
+        """Ray workers do not say it: none is paused."""
 
     def balance(self, done: set[int]) -> None:
         """Nothing to share: each Ray worker has its one CPU."""

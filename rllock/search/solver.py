@@ -84,6 +84,9 @@ class SearchConfig:
     prune_below: float = 0.02
     """With a guide network: children whose value is below this are dropped (the network judges that
     the search below them places almost none of the pieces left), except the best of a node's."""
+    abandon_below: float = 0.0
+    """With a guide network: a node whose every child is valued below this is abandoned, the search
+    backtracks at once (most nodes' children all win or all lose: the failure was set higher up)."""
 
     def share_for(self, task: Task) -> float:
         """The share of closed-proposal chunks for `task`."""
@@ -316,8 +319,10 @@ def _dfs(
 def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfig) -> list[Child]:
     """`children` in pop order by the guide's values plus
     `config.guide_count_weight` times their lookahead share, best last, without those valued below
-    `config.prune_below` (never all)."""
+    `config.prune_below` (never all, unless every one is valued below `config.abandon_below`)."""
     values = guide.values(task, [c.state for c in children], [c.share for c in children])
+    if values.max() < config.abandon_below:
+        return []
     score = [values[i] + config.guide_count_weight * c.share for i, c in enumerate(children)]
     order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
