@@ -24,7 +24,7 @@ from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide
-from rllock.search.solver import SearchStats, complete_from, expand, search, solve
+from rllock.search.solver import SearchConfig, SearchStats, complete_from, expand, search, solve
 
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
@@ -147,6 +147,29 @@ def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare(
     for guide in (_untrained(), hopeless):
         found = solve(task, count=1, time_limit=120, seed=0, guide=guide)
         assert len(found) == 1 and verify_labels(found[0], task.removal).valid
+
+
+def _constant(value: float) -> Guide:
+    """A guide that values every state `value` (its last layer's bias alone)."""
+    params = dict(jax.tree.map(np.asarray, _untrained().params))
+    logit = float(np.log(value / (1 - value)))
+    params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, logit)}
+    return Guide(CONFIG, params, f"constant {value}")
+
+
+def test_a_node_whose_children_all_value_below_abandon_below_is_abandoned():
+    task = make_task("cube4", 7)
+    low, high = _constant(0.1), _constant(0.3)
+    assert np.allclose(low.values(task, [initial_state(task)], [1.0]), 0.1, atol=1e-3)
+    abandon = SearchConfig(abandon_below=0.2)
+    stats = SearchStats()
+    assert next(search(task, seed=0, time_limit=2, config=abandon, guide=low, stats=stats), None) is None
+    # every node within the horizon abandoned: each restart ends where the guide first judges
+    assert stats.placed < task.pieces - 1 and stats.restarts > 10
+    found = solve(task, count=1, time_limit=120, seed=0, guide=high, config=abandon)
+    assert len(found) == 1 and verify_labels(found[0], task.removal).valid  # above it: searched as before
+    plain = solve(task, count=1, time_limit=120, seed=0, guide=high)
+    assert np.array_equal(found[0], plain[0])
 
 
 def test_the_curriculum_draws_feasible_varied_tasks():

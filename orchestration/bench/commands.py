@@ -80,6 +80,13 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     p.add_argument("--time-limit", type=positive_float, default=60.0, help="seconds per arm and seed")
+    p.add_argument(
+        "--abandon-below",
+        type=float,
+        default=None,
+        help="the guided arms abandon a node whose children all value below this (default: the "
+        "search's own, SearchConfig.abandon_below)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 

@@ -7,7 +7,7 @@ import argparse
 import json
 import logging
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -363,14 +363,20 @@ def cmd_bench_success(args: argparse.Namespace) -> int:
 def cmd_bench_guide(args: argparse.Namespace) -> int:
     from orchestration.bench.guide import bench_guide, format_guide_table, parse_cells, rows_json
     from rllock.search.guide_checkpoint import load_guide
+    from rllock.search.solver import SearchConfig
 
     cells = parse_cells(args.cells)
     arms = choices(args.arms, "--arms", ("solver", "guided", "untrained"))
     seeds = [int(s) for s in items(args.seeds, "--seeds") if s.isdigit()]
     if len(seeds) != len(items(args.seeds, "--seeds")):
         raise RLLockError(f"--seeds takes a comma-separated list of seeds (0, 1, ...), got {args.seeds!r}")
+    config = SearchConfig()
+    if args.abandon_below is not None:
+        if not 0.0 <= args.abandon_below <= 1.0:
+            raise RLLockError(f"--abandon-below is a value in [0, 1], got {args.abandon_below}")
+        config = replace(config, abandon_below=args.abandon_below)
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
-    rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit)
+    rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit, config=config)
     if args.json:
         sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "rows": rows_json(rows)}) + "\n")
     else:

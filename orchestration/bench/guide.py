@@ -22,6 +22,7 @@ from orchestration.bench.specs import parse_list
 from rllock.core.env import Task, initial_state, make_task
 from rllock.errors import RLLockError
 from rllock.search.guide import Guide, init_guide
+from rllock.search.solver import SearchConfig
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +70,16 @@ class GuideRow:
 
 
 def bench_guide(
-    cells: list[GuideCell], guide: Guide, *, seeds: list[int], arms: list[str], time_limit: float
+    cells: list[GuideCell],
+    guide: Guide,
+    *,
+    seeds: list[int],
+    arms: list[str],
+    time_limit: float,
+    config: SearchConfig = SearchConfig(),
 ) -> list[GuideRow]:
+    """Each cell's arms side by side per seed; `config` is every arm's search (its guide settings apply
+    to the guided arms only)."""
     untrained = Guide(
         guide.config, init_guide(guide.config, jax.random.PRNGKey(0)), "untrained (seed 0)", guide.horizon
     )
@@ -85,7 +94,7 @@ def bench_guide(
         results: dict[str, list[Cell]] = {arm: [] for arm in arms}
         for seed in seeds:
             for arm in arms:
-                results[arm].append(solver_cell(task, time_limit, seed, guides[arm]))
+                results[arm].append(solver_cell(task, time_limit, seed, guides[arm], config=config))
                 log.info("%s seed %d %s: %s", cell.label, seed, arm, results[arm][-1].text(task.pieces))
         rows.append(GuideRow(cell, task.size, results))
     return rows

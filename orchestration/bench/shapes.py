@@ -26,7 +26,7 @@ from rllock.errors import RLLockError
 from rllock.search.guide import Guide
 from rllock.search.inference import load_policy, with_simulations
 from rllock.search.portfolio import portfolio_search
-from rllock.search.solver import SearchStats, search
+from rllock.search.solver import SearchConfig, SearchStats, search
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,13 @@ def shape_tasks(shapes: list[str], mesh: str | None, resolutions: list[int]) -> 
 
 
 def solver_cell(
-    task: Task, time_limit: float, seed: int, guide: Guide | None = None, workers: int = 1, threads: int = 1
+    task: Task,
+    time_limit: float,
+    seed: int,
+    guide: Guide | None = None,
+    workers: int = 1,
+    threads: int = 1,
+    config: SearchConfig = SearchConfig(),
 ) -> Cell:
     """Seconds to the search's first valid assembly (verified), with `guide` when given, by `workers`
     searches at once (`rllock.search.portfolio`; their start-up counted) or one on `threads` threads."""
@@ -82,10 +88,12 @@ def solver_cell(
     if threads > 1 and workers > 1:
         raise ValueError("a portfolio shares its cores between seeds and threads itself")
     if workers == 1:
-        searches = search(task, seed=seed, time_limit=time_limit, stats=stats, guide=guide, threads=threads)
+        searches = search(
+            task, seed=seed, time_limit=time_limit, stats=stats, guide=guide, threads=threads, config=config
+        )
     else:
         searches = portfolio_search(
-            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide
+            task, seed=seed, workers=workers, time_limit=time_limit, stats=stats, guide=guide, config=config
         )
     for found in searches:
         seconds = time.perf_counter() - start
