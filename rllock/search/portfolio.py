@@ -10,11 +10,13 @@ has compiled); the others are spawned processes. Worker 0 may also sample a node
 (the same search node for node, sooner: `solver.SamplingPool`), and which pays depends on what one
 sample costs. Measured on 2 cores: two searches side by side each run as fast as one alone; one search
 on two threads runs 1.5-1.7x as fast where a sample costs 1.4-5.6 ms, 1.0x at 0.3 ms. A second seed
-pays by the spread of run times, a second thread surely but by less. So the crew watches worker 0's
-running mean of one sample's cost, which grows as a search goes deeper (spot at resolution 30: 1.3 ms in
-its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS worker 0 takes the cores
-of workers 1..T-1 on T threads and those workers are paused (SIGSTOP: they keep their place and use no
-CPU); below APART_BELOW_SECONDS they go on and worker 0 samples alone again.
+pays by the spread of run times, a second thread surely but by less. So the crew watches the mean cost
+of worker 0's samples over windows of BALANCE_EVERY_SECONDS, which grows as a search goes deeper (spot
+at resolution 30: 1.3 ms in its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS
+worker 0 has the cores of workers 1..T-1 on T threads and those workers are paused (SIGSTOP: they keep
+their place and use no CPU); below APART_BELOW_SECONDS they go on and worker 0 samples alone again.
+Worker 0 has those cores from the start (a spawned worker is paused once it is ready), and the first
+window decides: a costly search loses nothing to the start of a portfolio it would not use.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -259,9 +261,9 @@ class _LocalCrew:
             return
         mean = (pool.seconds - seconds) / (pool.samples - samples)
         shared = shares_cores(pool.allowed, mean) and 0 not in done
+        if shared:  # every window: a terminal's job control (Ctrl-Z, fg) continues the whole group
+            self._signal(self.pausable, signal.SIGSTOP)
         if shared != pool.allowed:
-            if shared:
-                self._signal(self.pausable, signal.SIGSTOP)
             pool.allowed = shared
             if not shared:
                 self._signal(self.pausable, signal.SIGCONT)
