@@ -57,8 +57,8 @@ log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
-# Worker 0 takes the cores of the workers it pauses from this running mean of one sample's seconds, and
-# gives them back below the second. Chosen from five hard cells on 2 cores (docs/benchmarks.md, "Every
+# Worker 0 has the cores of the workers it pauses while its samples cost at least the first, in seconds,
+# over a window, and gives them back below the second. Chosen from five hard cells on 2 cores (docs/benchmarks.md, "Every
 # core, a third time"): mean sample costs 0.28 (cube4 K=9), 1.15 (desia-dog K=50) and 1.7-2.0 ms (bunny
 # mesh at 16, K=55), where two seeds gained more than two threads; 2.5 (desia-bunny K=80 path) and 3-5 ms
 # (spot mesh at 30, K=255), where two threads gained more. The gap keeps a mean near one bound from
@@ -257,9 +257,9 @@ class _LocalCrew:
         if not self.lent or now - then < BALANCE_EVERY_SECONDS:
             return
         self.window = (now, pool.seconds, pool.samples)
-        if pool.samples == samples:
+        if pool.samples == samples and 0 not in done:
             return
-        mean = (pool.seconds - seconds) / (pool.samples - samples)
+        mean = (pool.seconds - seconds) / max(pool.samples - samples, 1)
         shared = shares_cores(pool.allowed, mean) and 0 not in done
         if shared:  # every window: a terminal's job control (Ctrl-Z, fg) continues the whole group
             self._signal(self.pausable, signal.SIGSTOP)
