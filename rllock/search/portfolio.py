@@ -58,11 +58,11 @@ log = logging.getLogger(__name__)
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
 # Worker 0 has the cores of the workers it pauses while its samples cost at least the first, in seconds,
-# over a window, and gives them back below the second. Chosen from five hard cells on 2 cores (docs/benchmarks.md, "Every
-# core, a third time"): mean sample costs 0.28 (cube4 K=9), 1.15 (desia-dog K=50) and 1.7-2.0 ms (bunny
-# mesh at 16, K=55), where two seeds gained more than two threads; 2.5 (desia-bunny K=80 path) and 3-5 ms
-# (spot mesh at 30, K=255), where two threads gained more. The gap keeps a mean near one bound from
-# switching at every node.
+# over a window, and gives them back below the second. Chosen from five hard cells on 2 cores
+# (docs/benchmarks.md, "Every core, a third time"): mean sample costs 0.28 (cube4 K=9), 1.15 (desia-dog
+# K=50) and 1.7-2.0 ms (bunny mesh at 16, K=55), where two seeds gained more than two threads; 2.5
+# (desia-bunny K=80 path) and 3-5 ms (spot mesh at 30, K=255), where two threads gained more. The gap
+# keeps a mean near one bound from switching at every window.
 SHARED_FROM_SECONDS = 2.3e-3
 APART_BELOW_SECONDS = 2.0e-3
 BALANCE_EVERY_SECONDS = 1.0  # the mean is taken over this long a window: single samples vary tenfold
