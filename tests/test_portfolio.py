@@ -99,12 +99,15 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
         pool.executor.shutdown()
 
 
-def test_worker_0_shares_the_cores_from_the_upper_bound_and_gives_them_back_below_the_lower():
+def test_worker_0_shares_the_cores_after_one_costly_window_and_gives_them_back_after_two_cheap_ones():
     low, high = portfolio.APART_BELOW_SECONDS, portfolio.SHARED_FROM_SECONDS
     assert low < high
     between = (low + high) / 2
-    assert not shares_cores(False, between) and shares_cores(True, between)  # each stays as it is
-    assert shares_cores(False, high) and not shares_cores(True, low * 0.99)
+    assert not shares_cores(False, (between,)) and shares_cores(True, (between,))  # each stays as it is
+    assert shares_cores(False, (high,)) and shares_cores(False, (low, high))  # one costly window shares
+    cheap = low * 0.99
+    assert shares_cores(True, (cheap,)) and shares_cores(True, (between, cheap))  # a first cheap window
+    assert not shares_cores(True, (cheap, cheap)) and not shares_cores(True, (high, cheap, cheap))
 
 
 def _process_state(pid: int) -> str:

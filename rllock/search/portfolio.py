@@ -14,9 +14,10 @@ pays by the spread of run times, a second thread surely but by less. So the crew
 of worker 0's samples over windows of BALANCE_EVERY_SECONDS, which grows as a search goes deeper (spot
 at resolution 30: 1.3 ms in its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS
 worker 0 has the cores of workers 1..T-1 on T threads and those workers are paused (SIGSTOP: they keep
-their place and use no CPU); below APART_BELOW_SECONDS they go on and worker 0 samples alone again.
-Worker 0 has those cores from the start (a spawned worker is paused once it is ready), and the first
-window decides: a costly search loses nothing to the start of a portfolio it would not use.
+their place and use no CPU); below APART_BELOW_SECONDS for APART_AFTER_WINDOWS windows in a row they go
+on and worker 0 samples alone again. Worker 0 has those cores from the start (a spawned worker is paused
+once it is ready): a costly search loses little to the start of a portfolio it would not use, or to its
+cheap first samples.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -66,6 +67,7 @@ JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; the
 SHARED_FROM_SECONDS = 2.3e-3
 APART_BELOW_SECONDS = 2.0e-3
 BALANCE_EVERY_SECONDS = 1.0  # the mean is taken over this long a window: single samples vary tenfold
+APART_AFTER_WINDOWS = 2
 
 
 def worker_seed(seed: int, worker: int) -> int:
@@ -131,10 +133,16 @@ def _die_with_parent() -> bool:
     return parent is None or parent.is_alive()
 
 
-def shares_cores(shared: bool, mean_sample_seconds: float) -> bool:
-    """Whether worker 0 should sample on the lent workers' cores, now `shared` or not, when one of its
-    samples costs `mean_sample_seconds`."""
-    return mean_sample_seconds >= (APART_BELOW_SECONDS if shared else SHARED_FROM_SECONDS)
+def shares_cores(shared: bool, means: tuple[float, ...]) -> bool:
+    """Whether worker 0 should sample on the lent workers' cores, now `shared` or not, given the mean cost
+    of its samples in the windows so far (`means`, the last one latest). One costly window shares them;
+    giving them back takes two cheap ones in a row, since a search's first samples are its cheapest
+    (module docstring) and the cores are worth most where samples are costly."""
+    if not shared:
+        return means[-1] >= SHARED_FROM_SECONDS
+    return len(means) < APART_AFTER_WINDOWS or any(
+        m >= APART_BELOW_SECONDS for m in means[-APART_AFTER_WINDOWS:]
+    )
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -218,7 +226,7 @@ class _LocalCrew:
     """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), on a
     sampling pool of up to `children` threads, one a worker; the others as spawned processes, the first
     of them (`lent`) paused while worker 0 has their cores (module docstring), which it has from the
-    start: a lent worker is paused once it has said it is ready, until the first window's mean says
+    start: a lent worker is paused once it has said it is ready, until the windows' means say
     otherwise; a multiprocessing queue and event."""
 
     def __init__(self, jobs: list[tuple], children: int) -> None:
@@ -236,6 +244,7 @@ class _LocalCrew:
         self.lent = self.processes[: threads - 1]  # the workers whose cores worker 0 takes
         self.pausable: list[Any] = []  # the lent workers that are ready (`_work_locally`)
         self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
+        self.means: tuple[float, ...] = ()  # worker 0's mean sample cost in the last windows
 
     def start(self) -> None:
         self.first.start()
@@ -260,7 +269,8 @@ class _LocalCrew:
         if pool.samples == samples and 0 not in done:
             return
         mean = (pool.seconds - seconds) / max(pool.samples - samples, 1)
-        shared = shares_cores(pool.allowed, mean) and 0 not in done
+        self.means = (*self.means, mean)[-APART_AFTER_WINDOWS:]
+        shared = shares_cores(pool.allowed, self.means) and 0 not in done
         if shared:  # every window: a terminal's job control (Ctrl-Z, fg) continues the whole group
             self._signal(self.pausable, signal.SIGSTOP)
         if shared != pool.allowed:
