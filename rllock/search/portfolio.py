@@ -60,12 +60,12 @@ JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; the
 
 # Worker 0 has the cores of the workers it pauses while its samples cost at least the first, in seconds,
 # over a window, and gives them back below the second. Chosen from five hard cells on 2 cores
-# (docs/benchmarks.md, "Every core, a third time"): mean sample costs 0.28 (cube4 K=9), 1.15 (desia-dog
-# K=50) and 1.7-2.0 ms (bunny mesh at 16, K=55), where two seeds gained more than two threads; 2.5
-# (desia-bunny K=80 path) and 3-5 ms (spot mesh at 30, K=255), where two threads gained more. The gap
-# keeps a mean near one bound from switching at every window.
-SHARED_FROM_SECONDS = 2.3e-3
-APART_BELOW_SECONDS = 2.0e-3
+# (docs/benchmarks.md, "Every core, a third time"), by the means of 1 s windows: 0.3 ms (cube4 K=9) and
+# 1.1-1.5 ms (desia-dog K=50), where two seeds gain more than two threads; 1.7-2.1 ms (bunny mesh at 16,
+# K=55), where both gain about as much; 1.9-3 ms (desia-bunny K=80 path) and 1.9-5 ms (spot mesh at 30,
+# K=255), where two threads gain more. The gap keeps a mean near one bound from switching back and forth.
+SHARED_FROM_SECONDS = 2.0e-3
+APART_BELOW_SECONDS = 1.6e-3
 BALANCE_EVERY_SECONDS = 1.0  # the mean is taken over this long a window: single samples vary tenfold
 APART_AFTER_WINDOWS = 2
 
