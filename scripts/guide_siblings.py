@@ -7,6 +7,9 @@ lookahead shares and their node.
 `fit A.npz [B.npz ...] --minutes M`: trains the guide network on the nodes whose index is not a multiple
 of 5 and, on the others (held out), counts sibling pairs with different labels ordered rightly by the
 lookahead share, by the network's value, and by the blend the guided search uses (value + 0.5 share).
+`judge RUN A.npz [B.npz ...]`: the same counts for a trained guide (a `rllock train-guide` run or
+checkpoint) on nodes it never saw, and how well its best child's value says a node is lost (every child
+labelled 0), the decision `SearchConfig.abandon_below` makes.
 
 (Until b6b005b a `collect` command recorded the search's own targets, the share of the pieces left
 that the DFS below a state placed; docs/benchmarks.md has what `fit` made of them.)
@@ -123,6 +126,38 @@ def fit(paths: list[str], minutes: float) -> None:
              np.abs(values - target).mean(), np.abs(target - d["target"][train].mean()).mean())  # fmt: skip
 
 
+def judge(run: str, paths: list[str]) -> None:
+    from rllock.search.guide_checkpoint import load_guide
+
+    guide = load_guide(run)
+    data = [np.load(p) for p in paths]
+    d = {k: np.concatenate([x[k] for x in data]) for k in data[0].files}
+    values = np.concatenate([
+        np.asarray(guide_values(guide.params, jnp.asarray(d["window"][c], jnp.float32),
+                                jnp.asarray(d["features"][c]), config=guide.config))
+        for c in np.array_split(np.arange(len(d["target"])), max(1, len(d["target"]) // 512))
+    ])  # fmt: skip
+    target, group, share = d["target"], d["group"], d["share"]
+    log.info("%s on %d children of %d nodes: labels mean %.2f, %.0f%% zero; mean |value - label| %.3f "
+             "(predicting the mean: %.3f)", guide.source, len(target), len(np.unique(group)), target.mean(),
+             100 * (target == 0).mean(), np.abs(values - target).mean(),
+             np.abs(target - target.mean()).mean())  # fmt: skip
+    for name, score in (("lookahead share", share), ("network value", values), ("value + 0.5 share",
+                        values + 0.5 * share)):  # fmt: skip
+        right, total = pairs_right(score, target, group, 0.0)
+        log.info(
+            "%-18s orders %.1f%% of %d sibling pairs with different labels rightly", name, 100 * right, total
+        )
+    nodes = np.unique(group)
+    best = np.array([values[group == g].max() for g in nodes])
+    lost = np.array([target[group == g].max() == 0 for g in nodes])
+    log.info("%d of %d nodes lost (every child labelled 0)", lost.sum(), len(nodes))
+    for below in (0.05, 0.1, 0.2, 0.3, 0.5):
+        flagged = best < below
+        log.info("best child valued below %.2f: %d nodes, %d of them lost (of %d)", below, flagged.sum(),
+                 (flagged & lost).sum(), lost.sum())  # fmt: skip
+
+
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     parser = argparse.ArgumentParser()
@@ -136,9 +171,14 @@ def main() -> None:
     f = sub.add_parser("fit")
     f.add_argument("paths", nargs="+")
     f.add_argument("--minutes", type=float, default=3.0)
+    j = sub.add_parser("judge")
+    j.add_argument("run")
+    j.add_argument("paths", nargs="+")
     args = parser.parse_args()
     if args.cmd == "rollouts":
         rollouts(args.out, args.groups, args.rollouts, args.expansions, args.seed)
+    elif args.cmd == "judge":
+        judge(args.run, args.paths)
     else:
         fit(args.paths, args.minutes)
 
