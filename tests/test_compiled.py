@@ -123,6 +123,21 @@ def test_same_seed_same_candidates():
     assert len(np.unique(a, axis=0)) == len(a)
 
 
+@pytest.mark.parametrize("k, n, high", [(0, 5, 9), (1, 5, 9), (7, 1, 3), (300, 4, 6), (512, 15, 800)])
+def test_distinct_rows_are_numpys_unique_of_the_sorted_rows(k, n, high):
+    """Against the reference `np.unique(np.sort(., axis=1), axis=0)`, on rows drawn from a pool a third
+    as large, each in an order of its own (equal as sets, unequal as rows), of voxel numbers below
+    `high` (few make rows that share long prefixes)."""
+    rng = np.random.default_rng(k + n)
+    pool = rng.integers(0, high, (k // 3 + 1, n)).astype(np.int32)
+    chunks = rng.permuted(pool[rng.integers(0, len(pool), k)], axis=1)
+    got = sampler.distinct_rows(chunks)
+    assert got.dtype == chunks.dtype
+    np.testing.assert_array_equal(got, np.unique(np.sort(chunks, axis=1), axis=0).reshape(-1, n))
+    if k > 1:
+        assert len(got) < k
+
+
 def test_first_voxel_of_a_piece_touches_the_previous_piece():
     task = make_task("cube5", 13)
     rng = np.random.default_rng(5)

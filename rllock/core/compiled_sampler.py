@@ -453,3 +453,63 @@ def chunk_cuts(nbr, labels, chunks):
                     cut += 1
         out[c] = cut
     return out
+
+
+@njit(cache=True, nogil=True)
+def _row_less(rows, a, b):
+    """Whether row a of `rows` comes before row b in lexicographic order."""
+    for j in range(rows.shape[1]):
+        if rows[a, j] != rows[b, j]:
+            return rows[a, j] < rows[b, j]
+    return False
+
+
+@njit(cache=True, nogil=True)
+def distinct_rows(chunks):
+    """The distinct chunks of `chunks` [k, n] as sorted voxel numbers, in lexicographic order:
+    `np.unique(np.sort(chunks, axis=1), axis=0)` without the GIL, so that a node's children sampled on
+    threads (`solver.SamplingPool`) do not wait on each other's bookkeeping. A bottom-up merge sort of
+    the row indices: k is a node's accepted samples, a few hundred at most."""
+    k, n = chunks.shape
+    rows = chunks.copy()
+    for r in range(k):
+        _insertion_sort(rows[r], n)
+    order = np.arange(k)
+    spare = np.empty(k, np.int64)
+    width = 1
+    while width < k:
+        for lo in range(0, k, 2 * width):
+            mid, hi = min(lo + width, k), min(lo + 2 * width, k)
+            i, j, o = lo, mid, lo
+            while i < mid and j < hi:
+                if _row_less(rows, order[j], order[i]):
+                    spare[o] = order[j]
+                    j += 1
+                else:
+                    spare[o] = order[i]
+                    i += 1
+                o += 1
+            while i < mid:
+                spare[o] = order[i]
+                i += 1
+                o += 1
+            while j < hi:
+                spare[o] = order[j]
+                j += 1
+                o += 1
+        order, spare = spare, order
+        width *= 2
+    out = np.empty((k, n), chunks.dtype)
+    m = 0
+    for r in range(k):
+        row = order[r]
+        same = m > 0
+        if same:
+            for j in range(n):
+                if out[m - 1, j] != rows[row, j]:
+                    same = False
+                    break
+        if not same:
+            out[m] = rows[row]
+            m += 1
+    return out[:m]

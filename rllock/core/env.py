@@ -184,14 +184,14 @@ def candidates_many(
 
 def distinct_subset(accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
     """Up to `count` distinct chunks (as sorted voxel numbers) drawn uniformly from `accepted`."""
-    unique = np.unique(np.sort(accepted, axis=1), axis=0)
+    unique = sampler.distinct_rows(accepted)
     return unique[np.random.default_rng(seed).permutation(len(unique))[:count]]
 
 
 def tightest_subset(task: Task, state: State, accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
     """Up to `count` distinct chunks (as sorted voxel numbers) of `accepted`: those with the smallest cut
     to the rest of the remaining volume (`compiled_sampler.chunk_cuts`), equal cuts in random order."""
-    unique = np.unique(np.sort(accepted, axis=1), axis=0)
+    unique = sampler.distinct_rows(accepted)
     cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, unique)
     order = np.lexsort((np.random.default_rng(seed).random(len(unique)), cuts))
     return unique[order[:count]]
