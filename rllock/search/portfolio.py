@@ -13,11 +13,15 @@ on two threads runs 1.5-1.7x as fast where a sample costs 1.4-5.6 ms, 1.0x at 0.
 pays by the spread of run times, a second thread surely but by less. So the crew watches the mean cost
 of worker 0's samples over windows of BALANCE_EVERY_SECONDS, which grows as a search goes deeper (spot
 at resolution 30: 1.3 ms in its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS
-worker 0 has the cores of workers 1..T-1 on T threads and those workers are paused (SIGSTOP: they keep
-their place and use no CPU); below APART_BELOW_SECONDS for APART_AFTER_WINDOWS windows in a row they go
-on and worker 0 samples alone again. Worker 0 has those cores from the start (a spawned worker is paused
-once it is ready): a costly search loses little to the start of a portfolio it would not use, or to its
-cheap first samples.
+worker 0 has the cores of workers 1..T-1 on T threads and those workers are paused (they wait between two
+node expansions, keeping their place and using no CPU); below APART_BELOW_SECONDS for APART_AFTER_WINDOWS
+windows in a row they go on and worker 0 samples alone again. Worker 0 has those cores from the start (a
+spawned worker waits before its first node): a costly search loses little to the start of a portfolio it
+would not use, or to its cheap first samples.
+
+Why a worker pauses itself rather than being stopped by a signal: SIGSTOP could catch it while its queue's
+feeder thread held the lock that every worker's messages share, and worker 0's assembly then waited for
+the time limit behind it (seen once in a benchmark: 54 of 54 pieces placed, "none in 60 s").
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -32,7 +36,6 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
-import os
 import queue as queues
 import signal
 import sys
@@ -86,6 +89,8 @@ def _work(
     worker: int,
     pool: SamplingPool | None,
 ) -> None:
+    """Worker `worker`'s search, its assemblies and progress put on `out`, until `halt.is_set()`, which it
+    asks between node expansions."""
     stats = SearchStats()
     try:
         found = search(
@@ -107,24 +112,37 @@ def _work(
         out.put(("done", worker, stats))
 
 
-def _work_locally(out: Any, halt: Any, *job: Any) -> None:
-    """`_work` in a spawned process, which says when it is ready: from then on it may be paused."""
+PAUSE_POLL_SECONDS = 0.5  # a paused worker looks at the stop event at least this often
+
+
+class _Pausable:
+    """The stop test of a spawned worker: while `go` is clear (worker 0 has its core) it waits there,
+    between two node expansions, then says whether `halt` is set."""
+
+    def __init__(self, halt: Any, go: Any) -> None:
+        self.halt, self.go = halt, go
+
+    def is_set(self) -> bool:
+        while not self.go.is_set() and not self.halt.is_set():
+            self.go.wait(PAUSE_POLL_SECONDS)
+        return self.halt.is_set()
+
+
+def _work_locally(out: Any, halt: Any, go: Any, *job: Any) -> None:
+    """`_work` in a spawned process, paused while `go` is clear (when it is a worker whose core may be
+    lent, else None)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if _die_with_parent():
-        out.put(("ready", job[JOB_WORKER], None))
-        _work(out, halt, *job)
+        _work(out, halt if go is None else _Pausable(halt, go), *job)
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
-JOB_WORKER = 5  # the worker's index in a job: `_work`'s arguments after the queue and the stop flag
-
-
 def _die_with_parent() -> bool:
     """Whether to go on: on Linux the kernel is asked to SIGKILL this worker when the thread that started
-    it ends, so a worker paused by SIGSTOP does not stay behind, stopped for good, when its parent is
-    killed outright (SIGKILL reaches a stopped process). False if the parent is already gone."""
+    it ends, so a paused worker, waiting for a word that will not come, does not stay behind when its
+    parent is killed outright. False if the parent is already gone."""
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -198,8 +216,6 @@ def portfolio_search(
                     now = time.monotonic()
                     yield Found(payload.labels, now - last, payload.expansions, payload.seed)
                     last = now
-            elif kind == "ready":
-                crew.ready(worker)
             elif kind == "error":
                 raise RuntimeError(f"search worker {worker} failed: {payload}")
             else:
@@ -226,23 +242,28 @@ class _LocalCrew:
     """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), on a
     sampling pool of up to `children` threads, one a worker; the others as spawned processes, the first
     of them (`lent`) paused while worker 0 has their cores (module docstring), which it has from the
-    start: a lent worker is paused once it has said it is ready, until the windows' means say
-    otherwise; a multiprocessing queue and event."""
+    start; a multiprocessing queue, a stop event, and an event that lets the lent workers go on."""
 
     def __init__(self, jobs: list[tuple], children: int) -> None:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         threads = min(len(jobs), children)
         self.pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead"), allowed=threads > 1)
+        self.go = context.Event()  # clear: the lent workers wait
         self.first = threading.Thread(
             target=_work, args=(self.out, self.event, *jobs[0][:-1], self.pool), daemon=True
         )
+        self.lent = threads - 1  # workers 1..lent, whose cores worker 0 takes
         self.processes = [
-            context.Process(target=_work_locally, args=(self.out, self.event, *job), daemon=True)
-            for job in jobs[1:]
+            context.Process(
+                target=_work_locally,
+                args=(self.out, self.event, self.go if i <= self.lent else None, *job),
+                daemon=True,
+            )
+            for i, job in enumerate(jobs[1:], start=1)
         ]
-        self.lent = self.processes[: threads - 1]  # the workers whose cores worker 0 takes
-        self.pausable: list[Any] = []  # the lent workers that are ready (`_work_locally`)
+        if not self.pool.allowed:
+            self.go.set()
         self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
         self.means: tuple[float, ...] = ()  # worker 0's mean sample cost in the last windows
 
@@ -250,13 +271,6 @@ class _LocalCrew:
         self.first.start()
         for p in self.processes:
             p.start()
-
-    def ready(self, worker: int) -> None:
-        lent = self.processes[worker - 1]
-        if lent in self.lent:
-            self.pausable.append(lent)
-            if self.pool.allowed:
-                self._signal([lent], signal.SIGSTOP)
 
     def balance(self, done: set[int]) -> None:
         """Every BALANCE_EVERY_SECONDS: worker 0 on threads with the lent workers paused, or every worker
@@ -271,28 +285,19 @@ class _LocalCrew:
         mean = (pool.seconds - seconds) / max(pool.samples - samples, 1)
         self.means = (*self.means, mean)[-APART_AFTER_WINDOWS:]
         shared = shares_cores(pool.allowed, self.means) and 0 not in done
-        if shared:  # every window: a terminal's job control (Ctrl-Z, fg) continues the whole group
-            self._signal(self.pausable, signal.SIGSTOP)
         if shared != pool.allowed:
             pool.allowed = shared
-            if not shared:
-                self._signal(self.pausable, signal.SIGCONT)
+            if shared:
+                self.go.clear()
+            else:
+                self.go.set()
             log.info(
                 "a sample costs %.1f ms: %s",
                 1e3 * mean,
-                f"worker 0 samples on the cores of {len(self.lent)} paused worker(s)"
+                f"worker 0 samples on the cores of {self.lent} paused worker(s)"
                 if shared
                 else "every worker searches on a core of its own",
             )
-
-    @staticmethod
-    def _signal(processes: list[Any], sig: int) -> None:
-        for p in processes:
-            if p.pid is not None and p.exitcode is None:
-                try:
-                    os.kill(p.pid, sig)
-                except ProcessLookupError:  # it ended after the check
-                    pass
 
     def get(self, timeout: float) -> tuple | None:
         try:
@@ -308,7 +313,7 @@ class _LocalCrew:
 
     def halt(self) -> None:
         self.event.set()
-        self._signal(self.lent, signal.SIGCONT)  # a paused worker could not see the event
+        self.go.set()  # a paused worker wakes and sees the event at once
 
     def running(self) -> bool:
         return self.first.is_alive() or any(p.is_alive() for p in self.processes)
@@ -374,9 +379,6 @@ class _RayCrew:
             return self.out.get(timeout=timeout)
         except Empty:
             return None
-
-    def ready(self, worker: int) -> None:
-        """Ray workers do not say it: none is paused."""
 
     def balance(self, done: set[int]) -> None:
         """Nothing to share: each Ray worker has its one CPU."""
