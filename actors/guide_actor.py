@@ -28,7 +28,7 @@ from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts, derive_seed
 from rllock.search.curriculum import draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode
-from rllock.search.solver import SearchStats, complete_from, expand, search
+from rllock.search.solver import SearchStats, expand, rollout_reach, search
 
 
 @dataclass(frozen=True)
@@ -74,18 +74,20 @@ class Probes:
 
 @dataclass(frozen=True)
 class Labelled:
-    """Encoded children with their rollout labels."""
+    """Encoded children with their rollout labels: the share of rollouts that reached an assembly, and
+    what each rollout reached (`solver.rollout_reach`: 1.0 an assembly)."""
 
     window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
     features: np.ndarray  # float32 [B, GLOBALS]
     target: np.ndarray  # float32 [B]
+    reach: np.ndarray  # float32 [B, rollouts]
 
 
 def label_children(task: Task, parents: list[State], config: GuideTrainConfig, seed: int) -> Labelled:
     """The children of each of `parents` (`solver.expand`), each labelled by the share of
     `config.rollouts` plain searches from it that reach an assembly."""
     w = config.guide.window
-    windows, features, targets = [np.zeros((0, w, w, w, CHANNELS), np.int8)], [np.zeros((0, GLOBALS))], []
+    windows, features, reach = [np.zeros((0, w, w, w, CHANNELS), np.int8)], [np.zeros((0, GLOBALS))], []
     for p, parent in enumerate(parents):
         children = expand(task, parent, seed=derive_seed(seed, p))
         if not children:
@@ -94,15 +96,18 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
         windows.append(e.window)
         features.append(e.features)
         for c, child in enumerate(children):
-            won = sum(
-                complete_from(
+            reach.append([
+                rollout_reach(
                     task, child.state, seed=derive_seed(seed, p, c, r), expansions=config.rollout_expansions
                 )
                 for r in range(config.rollouts)
-            )
-            targets.append(won / config.rollouts)
+            ])  # fmt: skip
+    runs = np.asarray(reach, np.float32).reshape(-1, config.rollouts)
     return Labelled(
-        np.concatenate(windows), np.concatenate(features).astype(np.float32), np.asarray(targets, np.float32)
+        np.concatenate(windows),
+        np.concatenate(features).astype(np.float32),
+        (runs == 1.0).mean(axis=1, dtype=np.float32),
+        runs,
     )
 
 

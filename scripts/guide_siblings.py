@@ -7,6 +7,10 @@ lookahead shares and their node.
 `fit A.npz [B.npz ...] --minutes M`: trains the guide network on the nodes whose index is not a multiple
 of 5 and, on the others (held out), counts sibling pairs with different labels ordered rightly by the
 lookahead share, by the network's value, and by the blend the guided search uses (value + 0.5 share).
+`retest A.npz [B.npz ...]`: is a label a property of the remainder or the rollouts' luck? The rollouts
+of each child split in two halves, how often one half's label orders sibling pairs as the other's does,
+for the share of rollouts that won and for the share of the pieces left they placed
+(`solver.rollout_reach`), on every node and on the nodes no rollout won (where the first label is 0).
 `judge RUN A.npz [B.npz ...]`: the same counts for a trained guide (a `rllock train-guide` run or
 checkpoint) on nodes it never saw, and how well its best child's value says a node is lost (every child
 labelled 0), the decision `SearchConfig.abandon_below` makes.
@@ -45,7 +49,8 @@ def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: in
     as the solver makes them (lookahead share included) and labelled as `rllock train-guide` labels them
     (`actors.guide_actor.label_children`: the share of `rollouts_per` plain searches from a child,
     `expansions` each, that reach an assembly)."""
-    rows: dict[str, list] = {k: [] for k in ("window", "features", "target", "share", "group", "task")}
+    keys = ("window", "features", "target", "reach", "share", "group", "task")
+    rows: dict[str, list] = {k: [] for k in keys}
     config = GuideTrainConfig(max_voxels=600, max_pieces=60)
     labels_config = dataclasses.replace(config, rollouts=rollouts_per, rollout_expansions=expansions)
     for g in range(groups):
@@ -61,8 +66,10 @@ def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: in
         if len(labelled.target) < 2:
             continue
         # The lookahead share is the guide's last feature (`rllock.search.guide._features`).
-        for window, features, target in zip(labelled.window, labelled.features, labelled.target):
-            _append(rows, window=window, features=features, target=target, share=features[-1],
+        for window, features, target, reach in zip(
+            labelled.window, labelled.features, labelled.target, labelled.reach
+        ):
+            _append(rows, window=window, features=features, target=target, reach=reach, share=features[-1],
                     group=seed * 10_000 + g, task=seed * 10_000 + g)  # fmt: skip
         log.info("%s K=%d %s, %d left: children's rollout labels %s", task.shape_name, task.pieces,
                  task.removal, left, labelled.target.round(2).tolist())  # fmt: skip
@@ -126,6 +133,23 @@ def fit(paths: list[str], minutes: float) -> None:
              np.abs(values - target).mean(), np.abs(target - d["target"][train].mean()).mean())  # fmt: skip
 
 
+def retest(paths: list[str]) -> None:
+    data = [np.load(p) for p in paths]
+    reach = np.concatenate([x["reach"] for x in data])
+    group = np.concatenate([x["group"] for x in data])
+    half = reach.shape[1] // 2
+    a, b = reach[:, :half], reach[:, half : 2 * half]
+    nodes = np.unique(group)
+    lost = np.isin(group, [g for g in nodes if (reach[group == g] == 1.0).sum() == 0])
+    log.info("%d children of %d nodes, %d rollouts each (halves of %d); %d nodes where no rollout won",
+             len(group), len(nodes), reach.shape[1], half, len(np.unique(group[lost])))  # fmt: skip
+    for name, label in (("won", lambda r: (r == 1.0).mean(axis=1)), ("reach", lambda r: r.mean(axis=1))):
+        for where, mask in (("every node", np.ones(len(group), bool)), ("no rollout won", lost)):
+            right, total = pairs_right(label(a)[mask], label(b)[mask], group[mask], 0.0)
+            log.info("%-5s on %-14s: half A orders %.1f%% of %d sibling pairs half B tells apart as B does",
+                     name, where, 100 * right, total)  # fmt: skip
+
+
 def judge(run: str, paths: list[str]) -> None:
     from rllock.search.guide_checkpoint import load_guide
 
@@ -171,12 +195,16 @@ def main() -> None:
     f = sub.add_parser("fit")
     f.add_argument("paths", nargs="+")
     f.add_argument("--minutes", type=float, default=3.0)
+    t = sub.add_parser("retest")
+    t.add_argument("paths", nargs="+")
     j = sub.add_parser("judge")
     j.add_argument("run")
     j.add_argument("paths", nargs="+")
     args = parser.parse_args()
     if args.cmd == "rollouts":
         rollouts(args.out, args.groups, args.rollouts, args.expansions, args.seed)
+    elif args.cmd == "retest":
+        retest(args.paths)
     elif args.cmd == "judge":
         judge(args.run, args.paths)
     else:

@@ -24,7 +24,15 @@ from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide
-from rllock.search.solver import SearchConfig, SearchStats, complete_from, expand, search, solve
+from rllock.search.solver import (
+    SearchConfig,
+    SearchStats,
+    complete_from,
+    expand,
+    rollout_reach,
+    search,
+    solve,
+)
 
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
@@ -122,6 +130,24 @@ def test_rollouts_tell_a_prefix_of_an_assembly_from_a_dead_end():
     assert not complete_from(task, State(wall, 1), seed=0, expansions=400)
 
 
+def test_a_rollouts_reach_is_the_share_of_the_pieces_left_it_placed():
+    task = make_task("cube4", 7)
+    path = []
+    next(search(task, seed=0, time_limit=60, record=lambda s, share: path.append(s)))
+    assert rollout_reach(task, path[-2], seed=0, expansions=400) == 1.0
+    # One expansion samples the root's children (and their continuations, the lookahead): one piece of
+    # the six to place.
+    assert rollout_reach(task, initial_state(task), seed=0, expansions=1) == 1 / 6
+    # sofa K=19 has no known assembly: from its root, rollouts reach deeper the more they may expand,
+    # since the same seed with a larger budget runs the smaller one's restarts first.
+    sofa = make_task("sofa", 19)
+    reach = [rollout_reach(sofa, initial_state(sofa), seed=0, expansions=e) for e in (1, 10, 100, 300)]
+    assert all(0 < r < 1.0 and round(18 * r, 9).is_integer() for r in reach), reach
+    assert reach == sorted(reach) and reach[0] == 1 / 18 and reach[-1] >= 0.5
+    wall = State(np.where(task.topology.coords[:, 0] == 1, 1, 0).astype(np.int16), 1)
+    assert rollout_reach(task, wall, seed=0, expansions=400) == 0.0  # the rest is in two parts already
+
+
 def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
     task = make_task("cube4", 7)
     config = GuideTrainConfig(guide=CONFIG, rollouts=2, rollout_expansions=200)
@@ -133,6 +159,8 @@ def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
     children = sum(len(expand(task, s, seed=derive_seed(3, p))) for p, s in enumerate(probes.kept))
     assert len(labelled.target) == children == len(labelled.window) == len(labelled.features)
     assert set(np.unique(labelled.target)) <= {0.0, 0.5, 1.0} and labelled.target.max() == 1.0
+    assert labelled.reach.shape == (children, 2) and ((labelled.reach >= 0) & (labelled.reach <= 1)).all()
+    np.testing.assert_array_equal(labelled.target, (labelled.reach == 1.0).mean(axis=1))
     again = label_children(task, probes.kept, config, seed=3)
     np.testing.assert_array_equal(labelled.target, again.target)
 

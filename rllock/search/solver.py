@@ -429,9 +429,11 @@ def _restarts(
     start: State | None,
     deadline: float,
     expansions: int | None,
+    stats: SearchStats | None = None,
 ) -> State | None:
     """Restarts of `_dfs` from `start` (or the root) with Luby budgets until a state with `target`
-    pieces placed (returned), the deadline or `expansions` node expansions in all, when given (None)."""
+    pieces placed (returned), the deadline or `expansions` node expansions in all, when given (None).
+    `stats`, when given, counts over all the restarts (its deepest state among them)."""
     used, restart = 0, 0
     left = target - (0 if start is None else start.placed)
     while (expansions is None or used < expansions) and time.monotonic() < deadline:
@@ -439,7 +441,16 @@ def _restarts(
         budget = config.restart_unit(task, left) * luby(restart)
         if expansions is not None:
             budget = min(budget, expansions - used)
-        state, spent = _dfs(task, rng, config, budget, deadline, target, SearchStats(), start=start)
+        state, spent = _dfs(
+            task,
+            rng,
+            config,
+            budget,
+            deadline,
+            target,
+            SearchStats() if stats is None else stats,
+            start=start,
+        )
         if state is not None:
             return state
         used += spent
@@ -465,11 +476,23 @@ def complete_from(
 ) -> bool:
     """Whether the search restarted from `state` (Luby budgets, `expansions` node expansions in all)
     reaches an assembly: a rollout that judges the remainder `state` leaves."""
+    return rollout_reach(task, state, seed=seed, expansions=expansions, config=config) == 1.0
+
+
+def rollout_reach(
+    task: Task, state: State, *, seed: int, expansions: int, config: SearchConfig = SearchConfig()
+) -> float:
+    """`complete_from`'s rollout, graded: the share of the pieces left below `state` that it placed at
+    best, 1.0 when it reached an assembly. Where every rollout fails (a hard task) it still tells a
+    remainder that ends one piece short from one that ends ten short."""
     target = task.pieces - 1
     if state.placed == target:
-        return True
+        return 1.0
+    stats = SearchStats()
     rng = np.random.default_rng(seed)
-    return _restarts(task, rng, config, target, state, float("inf"), expansions) is not None
+    if _restarts(task, rng, config, target, state, float("inf"), expansions, stats) is not None:
+        return 1.0
+    return (max(stats.placed, state.placed) - state.placed) / (target - state.placed)
 
 
 def solve(
