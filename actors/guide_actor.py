@@ -111,6 +111,12 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
     )
 
 
+def value_target(labelled: Labelled, label: str) -> np.ndarray:
+    """The children's value targets under `GuideTrainConfig.label`: the share of rollouts that won, or
+    the mean share of the pieces left they placed."""
+    return labelled.target if label == "won" else labelled.reach.mean(axis=1)
+
+
 def run_search(
     config: GuideTrainConfig, seed: int, number: int, guide: Guide | None
 ) -> tuple[Labelled, bool, int, Task]:
@@ -153,7 +159,8 @@ class GuideActor:
         )
         labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide)
         self.searches += 1
-        counts = ray.get(buffer.add.remote(labelled.window, labelled.features, labelled.target))
+        target = value_target(labelled, self.config.label)
+        counts = ray.get(buffer.add.remote(labelled.window, labelled.features, target))
         return SearchReport(
             f"{task.shape_name} K={task.pieces} {task.removal}",
             guided,
@@ -161,7 +168,7 @@ class GuideActor:
             placed,
             task.pieces,
             len(labelled.target),
-            float(labelled.target.mean()) if len(labelled.target) else 0.0,
+            float(target.mean()) if len(target) else 0.0,
             time.perf_counter() - start,
             version,
             os.getpid(),

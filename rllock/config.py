@@ -305,6 +305,9 @@ class GuideConfig:
     """Width of the hidden layers that join the window and the global features."""
 
 
+GUIDE_LABELS = ("won", "reach")
+
+
 @dataclass(frozen=True)
 class GuideTrainConfig:
     """`rllock train-guide`: Ray actors run the search solver on a curriculum of random shapes, shipped
@@ -336,6 +339,10 @@ class GuideTrainConfig:
     assembly."""
     rollout_expansions: int = 512
     """Node expansions of one rollout (a few Luby restarts)."""
+    label: str = "won"
+    """A child's value target: "won", the share of its rollouts that reach an assembly; "reach", the
+    share of the pieces left that they place (an assembly 1), which still tells siblings apart where
+    every rollout fails."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
@@ -375,6 +382,8 @@ class GuideTrainConfig:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
         if self.actors < 0:
             raise RLLockError(f"--actors must be >= 0, got {self.actors}")
+        if self.label not in GUIDE_LABELS:
+            raise RLLockError(f"--label must be one of {', '.join(GUIDE_LABELS)}, got {self.label!r}")
         if not 8 <= self.min_voxels <= self.max_voxels:
             raise RLLockError("--min-voxels must be at least 8 and at most --max-voxels")
         if not 1 <= self.min_left <= self.max_left:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
-from actors.guide_actor import Probes, label_children
+from actors.guide_actor import Probes, label_children, value_target
 from learner.guide_learner import GuideBuffer, GuideLearner
 from rllock.config import GuideConfig, GuideTrainConfig, to_json
 from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
@@ -161,6 +161,10 @@ def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
     assert set(np.unique(labelled.target)) <= {0.0, 0.5, 1.0} and labelled.target.max() == 1.0
     assert labelled.reach.shape == (children, 2) and ((labelled.reach >= 0) & (labelled.reach <= 1)).all()
     np.testing.assert_array_equal(labelled.target, (labelled.reach == 1.0).mean(axis=1))
+    np.testing.assert_array_equal(value_target(labelled, "won"), labelled.target)
+    reach = value_target(labelled, "reach")
+    np.testing.assert_allclose(reach, labelled.reach.mean(axis=1))
+    assert not np.array_equal(reach, labelled.target)  # some rollout failed part of the way
     again = label_children(task, probes.kept, config, seed=3)
     np.testing.assert_array_equal(labelled.target, again.target)
 

@@ -220,13 +220,13 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    from rllock.config import GuideTrainConfig
+    from rllock.config import GUIDE_LABELS, GuideTrainConfig
 
     p = subparsers.add_parser(
         "train-guide",
         help="train the guide network of rllock solve --guide on Ray (a curriculum of searches)",
     )
-    add_flags(p, GuideTrainConfig)
+    add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS})
     p.add_argument(
         "--resume", metavar="LOGDIR", default=None, help="continue the guide run in LOGDIR; --minutes to add"
     )
