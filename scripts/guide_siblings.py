@@ -11,9 +11,10 @@ lookahead share, by the network's value, and by the blend the guided search uses
 of each child split in two halves, how often one half's label orders sibling pairs as the other's does,
 for the share of rollouts that won and for the share of the pieces left they placed
 (`solver.rollout_reach`), on every node and on the nodes no rollout won (where the first label is 0).
-`judge RUN A.npz [B.npz ...]`: the same counts for a trained guide (a `rllock train-guide` run or
-checkpoint) on nodes it never saw, and how well its best child's value says a node is lost (every child
-labelled 0), the decision `SearchConfig.abandon_below` makes.
+`judge RUN A.npz [B.npz ...] [--label reach]`: the same counts for a trained guide (a `rllock
+train-guide` run or checkpoint) on nodes it never saw, against either label, and how well its best
+child's value says a node is lost (no rollout of any child won), the decision
+`SearchConfig.abandon_below` makes.
 
 (Until b6b005b a `collect` command recorded the search's own targets, the share of the pieces left
 that the DFS below a state placed; docs/benchmarks.md has what `fit` made of them.)
@@ -150,12 +151,15 @@ def retest(paths: list[str]) -> None:
                      name, where, 100 * right, total)  # fmt: skip
 
 
-def judge(run: str, paths: list[str]) -> None:
+def judge(run: str, paths: list[str], label: str) -> None:
     from rllock.search.guide_checkpoint import load_guide
 
     guide = load_guide(run)
     data = [np.load(p) for p in paths]
     d = {k: np.concatenate([x[k] for x in data]) for k in data[0].files}
+    won = d["target"]
+    if label == "reach":  # the children's labels as `train-guide --label reach` makes them
+        d["target"] = d["reach"].mean(axis=1)
     values = np.concatenate([
         np.asarray(guide_values(guide.params, jnp.asarray(d["window"][c], jnp.float32),
                                 jnp.asarray(d["features"][c]), config=guide.config))
@@ -174,7 +178,7 @@ def judge(run: str, paths: list[str]) -> None:
         )
     nodes = np.unique(group)
     best = np.array([values[group == g].max() for g in nodes])
-    lost = np.array([target[group == g].max() == 0 for g in nodes])
+    lost = np.array([won[group == g].max() == 0 for g in nodes])
     log.info("%d of %d nodes lost (every child labelled 0)", lost.sum(), len(nodes))
     for below in (0.05, 0.1, 0.2, 0.3, 0.5):
         flagged = best < below
@@ -200,13 +204,14 @@ def main() -> None:
     j = sub.add_parser("judge")
     j.add_argument("run")
     j.add_argument("paths", nargs="+")
+    j.add_argument("--label", choices=("won", "reach"), default="won")
     args = parser.parse_args()
     if args.cmd == "rollouts":
         rollouts(args.out, args.groups, args.rollouts, args.expansions, args.seed)
     elif args.cmd == "retest":
         retest(args.paths)
     elif args.cmd == "judge":
-        judge(args.run, args.paths)
+        judge(args.run, args.paths, args.label)
     else:
         fit(args.paths, args.minutes)
 
