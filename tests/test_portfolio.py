@@ -42,8 +42,12 @@ def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed(
     assert not mp.active_children()  # leaving the loop stopped every worker
 
 
-def test_workers_stop_at_the_time_limit_with_their_progress_summed():
+def test_workers_stop_at_the_time_limit_with_their_progress_summed(monkeypatch):
     task = make_task("desia-bunny", 80)  # none in a few seconds
+    # Every sample counts cheap: the cores go apart after two short windows and both workers search
+    # (else worker 1 may wait the whole time, worker 0 on its core, and count no restart).
+    monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
+    monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", float("inf"))
     stats, reports = SearchStats(), []
     started = time.monotonic()
     found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
