@@ -79,8 +79,12 @@ class Labelled:
 
     window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
     features: np.ndarray  # float32 [B, GLOBALS]
-    target: np.ndarray  # float32 [B]
     reach: np.ndarray  # float32 [B, rollouts]
+
+    @property
+    def target(self) -> np.ndarray:
+        """float32 [B]: the share of each child's rollouts that reached an assembly."""
+        return (self.reach == 1.0).mean(axis=1, dtype=np.float32)
 
 
 def label_children(task: Task, parents: list[State], config: GuideTrainConfig, seed: int) -> Labelled:
@@ -102,12 +106,10 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
                 )
                 for r in range(config.rollouts)
             ])  # fmt: skip
-    runs = np.asarray(reach, np.float32).reshape(-1, config.rollouts)
     return Labelled(
         np.concatenate(windows),
         np.concatenate(features).astype(np.float32),
-        (runs == 1.0).mean(axis=1, dtype=np.float32),
-        runs,
+        np.asarray(reach, np.float32).reshape(-1, config.rollouts),
     )
 
 

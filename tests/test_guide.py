@@ -27,7 +27,6 @@ from rllock.search.guide_checkpoint import guide_metadata, load_guide
 from rllock.search.solver import (
     SearchConfig,
     SearchStats,
-    complete_from,
     expand,
     rollout_reach,
     search,
@@ -124,10 +123,10 @@ def test_rollouts_tell_a_prefix_of_an_assembly_from_a_dead_end():
     path = []
     next(search(task, seed=0, time_limit=60, record=lambda s, share: path.append(s)))
     prefix = path[-2]  # the assembly's path, one piece before its last placed piece
-    assert complete_from(task, prefix, seed=0, expansions=400)
+    assert rollout_reach(task, prefix, seed=0, expansions=400) == 1.0
     # A first piece that walls the cube in two: no piece can keep the rest connected, so no rollout wins.
     wall = np.where(task.topology.coords[:, 0] == 1, 1, 0).astype(np.int16)
-    assert not complete_from(task, State(wall, 1), seed=0, expansions=400)
+    assert rollout_reach(task, State(wall, 1), seed=0, expansions=400) < 1.0
 
 
 def test_a_rollouts_reach_is_the_share_of_the_pieces_left_it_placed():

@@ -436,21 +436,13 @@ def _restarts(
     `stats`, when given, counts over all the restarts (its deepest state among them)."""
     used, restart = 0, 0
     left = target - (0 if start is None else start.placed)
+    stats = SearchStats() if stats is None else stats
     while (expansions is None or used < expansions) and time.monotonic() < deadline:
         restart += 1
         budget = config.restart_unit(task, left) * luby(restart)
         if expansions is not None:
             budget = min(budget, expansions - used)
-        state, spent = _dfs(
-            task,
-            rng,
-            config,
-            budget,
-            deadline,
-            target,
-            SearchStats() if stats is None else stats,
-            start=start,
-        )
+        state, spent = _dfs(task, rng, config, budget, deadline, target, stats, start=start)
         if state is not None:
             return state
         used += spent
@@ -471,19 +463,12 @@ def expand(task: Task, state: State, *, seed: int, config: SearchConfig = Search
     return nodes.children_of(state, nodes.sample(state)[0])
 
 
-def complete_from(
-    task: Task, state: State, *, seed: int, expansions: int, config: SearchConfig = SearchConfig()
-) -> bool:
-    """Whether the search restarted from `state` (Luby budgets, `expansions` node expansions in all)
-    reaches an assembly: a rollout that judges the remainder `state` leaves."""
-    return rollout_reach(task, state, seed=seed, expansions=expansions, config=config) == 1.0
-
-
 def rollout_reach(
     task: Task, state: State, *, seed: int, expansions: int, config: SearchConfig = SearchConfig()
 ) -> float:
-    """`complete_from`'s rollout, graded: the share of the pieces left below `state` that it placed at
-    best, 1.0 when it reached an assembly. Where every rollout fails (a hard task) it still tells a
+    """A rollout that judges the remainder `state` leaves: the search restarted from it (Luby budgets,
+    `expansions` node expansions in all). The share of the pieces left below `state` that it placed at
+    best, 1.0 when it reached an assembly: where every rollout fails (a hard task) it still tells a
     remainder that ends one piece short from one that ends ten short."""
     target = task.pieces - 1
     if state.placed == target:
