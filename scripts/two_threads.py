@@ -5,7 +5,8 @@
 The same search (the same seed, node for node) on one thread, on two (`search(threads=2)`), and as
 `solve --workers 2` runs it (`portfolio_search`), one after another in this process. For the first two:
 the seconds the samples took (summed over threads), the nodes whose children were sampled on the
-threads and the wall time that took, and the nodes sampled on the calling thread alone (one child).
+threads and the wall time that took, the nodes sampled on the calling thread alone (one child), and the
+samples run ahead for a guessed next node and how many of them the search took.
 """
 
 import argparse
@@ -37,9 +38,9 @@ def main() -> None:
     calls: Counter = Counter()
     sample_all, chunks = solver._Expander.sample_all, solver._Expander._chunks
 
-    def timed_sample_all(self, states):
+    def timed_sample_all(self, states, chunks):
         start = time.perf_counter()
-        out = sample_all(self, states)
+        out = sample_all(self, states, chunks)
         where = "threads" if self.pool is not None and self.pool.worth_it(len(states)) else "alone"
         wall[where] += time.perf_counter() - start
         calls[where] += 1
@@ -55,16 +56,21 @@ def main() -> None:
     for threads in (1, 2):
         wall.clear()
         calls.clear()
+        pool = solver.SamplingPool.start(threads) if threads > 1 else None
         start = time.perf_counter()
-        found = solver.search(task, seed=args.seed, time_limit=args.time_limit, threads=threads)
+        found = solver.search(task, seed=args.seed, time_limit=args.time_limit, pool=pool)
         got = next(found, None)
         seconds = time.perf_counter() - start
         found.close()
         log.info(
-            "%d thread(s): %.2f s (%s); samples %.2f s; %d nodes on the threads %.2f s, %d alone %.2f s",
+            "%d thread(s): %.2f s (%s); samples %.2f s; %d nodes on the threads %.2f s, %d alone %.2f s; "
+            "samples run ahead %d, taken %d",
             threads, seconds, "found" if got else "none", wall["samples"], calls["threads"],
             wall["threads"], calls["alone"], wall["alone"],
+            pool.guessed if pool else 0, pool.reused if pool else 0,
         )  # fmt: skip
+        if pool is not None:
+            pool.executor.shutdown()
     solver._Expander.sample_all, solver._Expander._chunks = sample_all, chunks
     start = time.perf_counter()
     found = portfolio_search(task, seed=args.seed, workers=2, time_limit=args.time_limit)

@@ -11,7 +11,6 @@ import sys
 import textwrap
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -74,21 +73,26 @@ def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces
 
     monkeypatch.setattr(solver, "sample_accepted", watched)
     runs = []
-    for threads in (1, 3):
-        stats = SearchStats()
-        found = [
-            f.labels
-            for f, _ in zip(search(task, seed=3, time_limit=60, stats=stats, threads=threads), range(2))
-        ]
-        runs.append((found, stats.expansions, stats.restarts))
+    pool = SamplingPool.start(3)
+    try:
+        for threaded in (None, pool):
+            stats = SearchStats()
+            found = [
+                f.labels
+                for f, _ in zip(search(task, seed=3, time_limit=60, stats=stats, pool=threaded), range(2))
+            ]
+            runs.append((found, stats.expansions, stats.restarts))
+    finally:
+        pool.executor.shutdown()
     (plain, expansions, restarts), (threaded, t_expansions, t_restarts) = runs
     assert any(name.startswith("rllock-lookahead") for name in sampled_on)
+    assert 0 < pool.reused <= pool.guessed  # the next node's samples were run ahead, and taken
     assert len(plain) == 2 and (t_expansions, t_restarts) == (expansions, restarts)
     assert all(np.array_equal(a, b) for a, b in zip(plain, threaded, strict=True))
 
 
 def test_threads_are_used_only_once_samples_are_long_enough_to_share():
-    pool = SamplingPool(ThreadPoolExecutor(2))
+    pool = SamplingPool.start(2)
     try:
         assert not pool.worth_it(8)  # nothing measured yet
         pool.took(1e-4)

@@ -42,7 +42,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Generator
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from rllock.core.env import Task, assembly_key
@@ -248,7 +247,7 @@ class _LocalCrew:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         threads = min(len(jobs), children)
-        self.pool = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead"), allowed=threads > 1)
+        self.pool = SamplingPool.start(threads, allowed=threads > 1)
         self.go = context.Event()  # clear: the lent workers wait
         self.first = threading.Thread(
             target=_work, args=(self.out, self.event, *jobs[0][:-1], self.pool), daemon=True

@@ -14,10 +14,12 @@ growth, children with the smallest cut) and restarts less often.
 
 from __future__ import annotations
 
+import copy
+import threading
 import time
 from collections.abc import Callable, Generator
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -172,13 +174,37 @@ THREADED_FROM_SECONDS = 0.5e-3
 class SamplingPool:
     """The threads a node's children are sampled on, a running mean of one sample's seconds, and the
     samples' seconds and count in all. A portfolio (`rllock.search.portfolio`) turns its worker 0's
-    threads off (`allowed`) while the other workers have the cores; the figures are kept either way."""
+    threads off (`allowed`) while the other workers have the cores; the figures are kept either way.
+    `guessed` counts the samples run ahead for a guessed next node (`_Expander`), `reused` those of
+    them the search then took."""
 
     executor: ThreadPoolExecutor
+    threads: int
     sample_seconds: float = 0.0
     allowed: bool = True
     seconds: float = 0.0
     samples: int = 0
+    guessed: int = 0
+    reused: int = 0
+    local: threading.local = field(default_factory=threading.local)
+
+    @classmethod
+    def start(cls, threads: int, allowed: bool = True) -> SamplingPool:
+        return cls(ThreadPoolExecutor(threads, "rllock-lookahead"), threads, allowed=allowed)
+
+    def own(self, task: Task) -> Task:
+        """`task` with this thread's own copy of its topology tables. The compiled sampler counts
+        references to the arrays it is given with atomic increments; two threads sharing one array make
+        its count's cache line bounce between the cores, which cost a sample about 5% more CPU time."""
+        held = getattr(self.local, "held", None)
+        if held is None or held[0] is not task:
+            topology = task.topology
+            copies = {
+                name: getattr(topology, name).copy()
+                for name in ("grid", "coords", "index", "nbr", "ray", "line")
+            }
+            held = self.local.held = (task, replace(task, topology=replace(topology, **copies)))
+        return held[1]
 
     def worth_it(self, samples: int) -> bool:
         return self.allowed and samples > 1 and self.sample_seconds >= THREADED_FROM_SECONDS
@@ -188,6 +214,17 @@ class SamplingPool:
         self.sample_seconds += 0.1 * (seconds - self.sample_seconds)
         self.seconds += seconds
         self.samples += 1
+
+
+@dataclass
+class _Guess:
+    """Samples run ahead for the children `chunks` make of `parent`, with the seeds the search will
+    draw for them if `parent` is the next node it expands: child index -> its sample's future."""
+
+    chunks: np.ndarray
+    seeds: list[int]
+    parent: State
+    futures: dict[int, Future]
 
 
 @dataclass
@@ -204,19 +241,68 @@ class _Expander:
     guide: Guide | None
     pool: SamplingPool | None = None
     expansions: int = 0
+    guess: _Guess | None = None
 
     def sample(self, state: State) -> tuple[np.ndarray, int]:
         """(up to `children` distinct accepted chunks, how many were accepted)."""
         return self._chunks(state, self._enter(state))
 
-    def sample_all(self, states: list[State]) -> list[tuple[np.ndarray, int]]:
-        """`sample` of each of `states`, on the lookahead's threads when there are some and the samples
-        are long enough: their seeds are drawn here first, in order, so the result is the same as one
-        after another."""
+    def sample_all(self, states: list[State], chunks: np.ndarray) -> list[tuple[np.ndarray, int]]:
+        """`sample` of each of `states` (the children `chunks` make), on the lookahead's threads when
+        there are some and the samples are long enough: their seeds are drawn here first, in order, so
+        the result is the same as one after another. Samples run ahead for these very children and
+        seeds (`_guess_next`) are taken as they are."""
         seeds = [self._enter(s) for s in states]
+        guess, self.guess = self.guess, None
+        ready = guess.futures if guess is not None and guess.chunks is chunks and guess.seeds == seeds else {}
+        if self.pool is not None:
+            self.pool.reused += len(ready)
         if self.pool is None or not self.pool.worth_it(len(states)):
-            return [self._chunks(s, seed) for s, seed in zip(states, seeds)]
-        return list(self.pool.executor.map(self._chunks, states, seeds))
+            return [
+                ready[i].result() if i in ready else self._chunks(s, seed)
+                for i, (s, seed) in enumerate(zip(states, seeds))
+            ]
+        pool = self.pool
+        futures = [
+            ready.get(i) or pool.executor.submit(self._chunks, s, seed)
+            for i, (s, seed) in enumerate(zip(states, seeds))
+        ]
+        waiting = set(futures)
+        while waiting:
+            if len(waiting) < pool.threads and self.guide is None:
+                self._guess_next(states, futures, len(waiting))
+            ahead: set[Future] = (
+                {f for f in self.guess.futures.values() if not f.done()} if self.guess else set()
+            )
+            wait(waiting | ahead, return_when=FIRST_COMPLETED)
+            waiting = {f for f in waiting if not f.done()}
+        return [f.result() for f in futures]
+
+    def _guess_next(self, states: list[State], futures: list[Future], busy: int) -> None:
+        """Give the threads this node's samples leave idle the samples of the node the search will most
+        likely expand next: the children of the child with the most accepted continuations so far (the
+        last such, as `children_of` orders them), seeded from a copy of the generator as the search
+        will seed them if that child is the one it takes. A wrong guess costs at most one sample's time
+        on one thread."""
+        done = [(f.result()[1], i) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
+        if not done:
+            return
+        best = max(done)[1]
+        grand = futures[best].result()[0]
+        if states[best].placed + 1 >= self.target:
+            return  # the next node is an assembly or samples nothing
+        if self.guess is None or self.guess.chunks is not grand:
+            rng = copy.deepcopy(self.rng)
+            self.guess = _Guess(grand, [int(rng.integers(1 << 31)) for _ in grand], states[best], {})
+        guess, pool = self.guess, self.pool
+        assert pool is not None
+        busy += sum(not f.done() for f in guess.futures.values())
+        while busy < pool.threads and len(guess.futures) < len(guess.chunks):
+            i = len(guess.futures)
+            kid = apply_chunk(guess.parent, guess.chunks[i])
+            guess.futures[i] = pool.executor.submit(self._chunks, kid, guess.seeds[i])
+            pool.guessed += 1
+            busy += 1
 
     def _enter(self, state: State) -> int:
         """Counts the expansion of `state` (progress reported when due); its sampling seed."""
@@ -231,7 +317,8 @@ class _Expander:
         return int(self.rng.integers(1 << 31))
 
     def _chunks(self, state: State, seed: int) -> tuple[np.ndarray, int]:
-        config, task = self.config, self.task
+        config = self.config
+        task = self.task if self.pool is None else self.pool.own(self.task)
         deep = config.deep(task)
         started = time.perf_counter()
         accepted = sample_accepted(
@@ -256,7 +343,7 @@ class _Expander:
         if not self.config.lookahead or state.placed + 1 == self.target:
             return self.guided([Child(k, None, 0.0) for k in kids])
         scored = []
-        for kid, (grand, count) in zip(kids, self.sample_all(kids)):
+        for kid, (grand, count) in zip(kids, self.sample_all(kids, chunks)):
             if len(grand):
                 scored.append((count, kid, grand))
         scored.sort(key=lambda t: t[0])
@@ -354,7 +441,7 @@ def search(
     if threads > 1 and pool is not None:
         raise ValueError("give threads or a pool, not both")
     check_feasible(task)
-    own = SamplingPool(ThreadPoolExecutor(threads, "rllock-lookahead")) if threads > 1 else None
+    own = SamplingPool.start(threads) if threads > 1 else None
     try:
         yield from _search(task, seed, time_limit, config, stats, stop, report, guide, record, own or pool)
     finally:
