@@ -4,7 +4,7 @@ run shows what the guide changes), keeping a few of the states it left (`solver.
 to `max_left` pieces before the end (a reservoir sample). Each kept state's children, as the search
 makes them, are then labelled by rollouts: the share of `rollouts` plain searches from the child that
 reach an assembly.
-The encoded children and their labels go to the replay buffer actor.
+The encoded children, their labels and which are siblings go to the replay buffer actor.
 
 Why rollouts: how deep the search happened to go below a state is mostly the search's luck, and a
 network trained on it ordered siblings no better than chance (docs/benchmarks.md, "What a guide can
@@ -80,6 +80,7 @@ class Labelled:
     window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
     features: np.ndarray  # float32 [B, GLOBALS]
     reach: np.ndarray  # float32 [B, rollouts]
+    group: np.ndarray  # int64 [B]: the parent's number (siblings share it)
 
     @property
     def target(self) -> np.ndarray:
@@ -92,6 +93,7 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
     `config.rollouts` plain searches from it that reach an assembly."""
     w = config.guide.window
     windows, features, reach = [np.zeros((0, w, w, w, CHANNELS), np.int8)], [np.zeros((0, GLOBALS))], []
+    group: list[int] = []
     for p, parent in enumerate(parents):
         children = expand(task, parent, seed=derive_seed(seed, p))
         if not children:
@@ -99,6 +101,7 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
         e = encode(task, [c.state for c in children], [c.share for c in children], w)
         windows.append(e.window)
         features.append(e.features)
+        group += [p] * len(children)
         for c, child in enumerate(children):
             reach.append([
                 rollout_reach(
@@ -110,6 +113,7 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
         np.concatenate(windows),
         np.concatenate(features).astype(np.float32),
         np.asarray(reach, np.float32).reshape(-1, config.rollouts),
+        np.asarray(group, np.int64),
     )
 
 
@@ -162,7 +166,7 @@ class GuideActor:
         labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide)
         self.searches += 1
         target = value_target(labelled, self.config.label)
-        counts = ray.get(buffer.add.remote(labelled.window, labelled.features, target))
+        counts = ray.get(buffer.add.remote(labelled.window, labelled.features, target, labelled.group))
         return SearchReport(
             f"{task.shape_name} K={task.pieces} {task.removal}",
             guided,

@@ -1,9 +1,13 @@
 """The guide network's replay buffer and learner (`rllock train-guide`).
 
 The buffer holds encoded search states (`rllock.search.guide.encode`: a window and features, both of a
-fixed size whatever the shape) with their value targets, in a ring. The learner minimises the binary
-cross-entropy between the network's value and the target (the share of the rollouts from the state that
-reached an assembly, `actors.guide_actor`), with Adam; its step is a pure jitted function.
+fixed size whatever the shape) with their value targets and sibling group (the children of one node), in
+a ring. The learner minimises, with Adam, the binary cross-entropy between the network's value and the
+target (`actors.guide_actor`: what the rollouts from the state reached) plus `rank_weight` times a
+sibling loss: for pairs of children of one node with different targets, the cross-entropy of the
+difference of their logits against which target is higher. The search uses the guide to order siblings,
+and the first loss alone learns mostly a node's level (docs/benchmarks.md). Its step is a pure jitted
+function.
 """
 
 from __future__ import annotations
@@ -26,29 +30,46 @@ from rllock.search.guide import CHANNELS, GLOBALS, GuideNet, init_guide
 
 
 class GuideBuffer:
-    """Encoded states and targets; the oldest are overwritten once `capacity` is reached."""
+    """Encoded states, targets and sibling groups; the oldest are overwritten once `capacity` is
+    reached. A batch (`sample`) is pairs: its first half drawn uniformly, its second half a sibling of
+    each (`paired` says which pairs are siblings: a state whose siblings are all gone has none)."""
 
     def __init__(self, capacity: int, window: int):
         self.capacity = capacity
         self.window = np.zeros((capacity, window, window, window, CHANNELS), np.int8)
         self.features = np.zeros((capacity, GLOBALS), np.float32)
         self.target = np.zeros(capacity, np.float32)
-        self.size = self.cursor = self.added = self.received_bytes = 0
+        self.group = np.full(capacity, -1, np.int64)
+        self.size = self.cursor = self.added = self.received_bytes = self.groups = 0
 
-    def add(self, window: np.ndarray, features: np.ndarray, target: np.ndarray) -> BufferCounts:
-        """Add a search's states; returns the counts after it."""
+    def add(
+        self, window: np.ndarray, features: np.ndarray, target: np.ndarray, group: np.ndarray
+    ) -> BufferCounts:
+        """Add a search's states, `group` numbering their nodes from 0 (siblings share a number); returns
+        the counts after it."""
         for i in range(len(target)):
             at = self.cursor
             self.window[at], self.features[at], self.target[at] = window[i], features[i], target[i]
+            self.group[at] = self.groups + group[i]
             self.cursor = (at + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)
             self.added += 1
-        self.received_bytes += window.nbytes + features.nbytes + target.nbytes
+        self.groups += int(group.max()) + 1 if len(group) else 0
+        self.received_bytes += window.nbytes + features.nbytes + target.nbytes + group.nbytes
         return self.counts()
 
     def sample(self, batch: int, seed: int) -> dict[str, np.ndarray]:
-        idx = np.random.default_rng(seed).integers(0, self.size, size=batch)
-        return {"window": self.window[idx], "features": self.features[idx], "target": self.target[idx]}
+        """`batch` states (an even number): `batch // 2` uniform ones, then a random sibling of each."""
+        rng = np.random.default_rng(seed)
+        first = rng.integers(0, self.size, size=batch // 2)
+        second, paired = siblings(self.group[: self.size], first, rng)
+        idx = np.concatenate([first, second])
+        return {
+            "window": self.window[idx],
+            "features": self.features[idx],
+            "target": self.target[idx],
+            "paired": paired,
+        }
 
     def counts(self) -> BufferCounts:
         solved = int((self.target[: self.size] >= 1.0).sum())
@@ -57,8 +78,10 @@ class GuideBuffer:
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""
         tmp = Path(path).with_suffix(".tmp.npz")
-        arrays = {name: getattr(self, name)[: self.size] for name in ("window", "features", "target")}
-        np.savez(tmp, size=self.size, cursor=self.cursor, added=self.added, **arrays)
+        arrays = {
+            name: getattr(self, name)[: self.size] for name in ("window", "features", "target", "group")
+        }
+        np.savez(tmp, size=self.size, cursor=self.cursor, added=self.added, groups=self.groups, **arrays)
         os.replace(tmp, path)
 
     def restore(self, path: str) -> int:
@@ -71,38 +94,78 @@ class GuideBuffer:
                 )
             for name in ("window", "features", "target"):
                 getattr(self, name)[:size] = data[name]
+            # A snapshot from before sibling groups: each state its own group (no pairs among them).
+            self.group[:size] = data["group"] if "group" in data.files else np.arange(size)
+            self.groups = int(data["groups"]) if "groups" in data.files else size
             self.size, self.added = size, int(data["added"])
             self.cursor = int(data["cursor"]) % self.capacity
         return size
 
 
-def guide_loss(params, config: GuideConfig, window, features, target):
-    logits = GuideNet(config).apply({"params": params}, window, features)
-    return optax.sigmoid_binary_cross_entropy(logits, target).mean()
+# A node has at most `SearchConfig.children` (8) children, stored one after another: a sibling of a state
+# lies within this many places of it in the ring.
+SIBLINGS_WITHIN = 8
+
+
+def siblings(group: np.ndarray, first: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """For each index of `first` into `group` (a ring's sibling groups), a random other index of its
+    group (itself where it has none) and whether it has one."""
+    offsets = np.arange(-SIBLINGS_WITHIN + 1, SIBLINGS_WITHIN)
+    near = first[:, None] + offsets[None, :]
+    near_ok = (near >= 0) & (near < len(group)) & (offsets[None, :] != 0)
+    near = np.where(near_ok, near, 0)
+    same = near_ok & (group[near] == group[first][:, None])
+    pick = np.argmax(np.where(same, rng.random(same.shape), -1.0), axis=1)
+    paired = same.any(axis=1)
+    return np.where(paired, near[np.arange(len(first)), pick], first), paired
+
+
+def guide_losses(params, config: GuideConfig, window, features, target, paired):
+    """(value loss, sibling loss) of a batch from `GuideBuffer.sample`: the cross-entropy of each value
+    against its target, and over the pairs of siblings with different targets, the cross-entropy of the
+    difference of their logits against which is higher (0 without such a pair)."""
+    logits: jax.Array = GuideNet(config).apply({"params": params}, window, features)  # type: ignore[assignment]
+    value = optax.sigmoid_binary_cross_entropy(logits, target).mean()
+    half = target.shape[0] // 2
+    apart = paired & (target[:half] != target[half:])
+    higher = (target[:half] > target[half:]).astype(jnp.float32)
+    rank = optax.sigmoid_binary_cross_entropy(logits[:half] - logits[half:], higher)
+    return value, jnp.sum(jnp.where(apart, rank, 0.0)) / jnp.maximum(apart.sum(), 1)
+
+
+def guide_loss(params, config: GuideConfig, rank_weight: float, window, features, target, paired):
+    value, rank = guide_losses(params, config, window, features, target, paired)
+    return value + rank_weight * rank, (value, rank)
 
 
 @partial(jax.jit, static_argnames=("config", "optimizer"))
-def guide_step(params, opt_state, batch, *, config: GuideConfig, optimizer: optax.GradientTransformation):
-    loss, grads = jax.value_and_grad(guide_loss)(params, config, *batch)
+def guide_step(
+    params, opt_state, batch, rank_weight, *, config: GuideConfig, optimizer: optax.GradientTransformation
+):
+    """One Adam step on `batch` (window, features, target, paired); returns (params, opt_state, (value
+    loss, sibling loss))."""
+    (_, losses), grads = jax.value_and_grad(guide_loss, has_aux=True)(params, config, rank_weight, *batch)
     updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
+    return optax.apply_updates(params, updates), opt_state, losses
 
 
 class GuideLearner(AdamState):
     """The guide network's learner: its parameters, optimizer state, step and PRNG key (`AdamState`)."""
 
-    def __init__(self, config: GuideConfig, learning_rate: float, key: jax.Array):
+    def __init__(self, config: GuideConfig, learning_rate: float, key: jax.Array, rank_weight: float = 0.0):
         super().__init__(partial(init_guide, config), learning_rate, key)
-        self.config = config
+        self.config, self.rank_weight = config, rank_weight
 
-    def update(self, sample: dict[str, np.ndarray]) -> float:
+    def update(self, sample: dict[str, np.ndarray]) -> tuple[float, float]:
+        """One step on a `GuideBuffer.sample`; returns its (value loss, sibling loss)."""
         batch = (
             jnp.asarray(sample["window"], jnp.float32),
             jnp.asarray(sample["features"]),
             jnp.asarray(sample["target"]),
+            jnp.asarray(sample["paired"]),
         )
-        self.params, self.opt_state, loss = guide_step(
-            self.params, self.opt_state, batch, config=self.config, optimizer=self.optimizer
+        self.params, self.opt_state, (value, rank) = guide_step(
+            self.params, self.opt_state, batch, self.rank_weight, config=self.config, optimizer=self.optimizer
         )
         self.step += 1
-        return float(loss)
+        return float(value), float(rank)

@@ -115,7 +115,9 @@ class _GuideRun:
     def __init__(self, config: GuideTrainConfig, began: float, resume: bool):
         self.config, self.began = config, began
         self.logdir = Path(config.logdir)
-        self.learner = GuideLearner(config.guide, config.guide_learning_rate, jax.random.PRNGKey(config.seed))
+        self.learner = GuideLearner(
+            config.guide, config.guide_learning_rate, jax.random.PRNGKey(config.seed), config.rank_weight
+        )
         self.counters, self.sessions = GuideCounters(), []
         if resume:
             self._restore()
@@ -254,9 +256,10 @@ class _GuideRun:
 
     def _learn(self) -> bool:
         sample = ray.get(self.buffer.sample.remote(self.config.batch_size, self.learner.next_seed()))
-        loss = self.learner.update(sample)
+        value, rank = self.learner.update(sample)
         if self.learner.step % 10 == 0 or self.learner.step == 1:
-            self.writer.add_scalar("losses/value", loss, self.learner.step)
+            self.writer.add_scalar("losses/value", value, self.learner.step)
+            self.writer.add_scalar("losses/siblings", rank, self.learner.step)
         if self.learner.step % self.config.publish_every == 0:
             self.counters.version += 1
             return True

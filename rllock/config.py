@@ -343,6 +343,9 @@ class GuideTrainConfig:
     """A child's value target: "won", the share of its rollouts that reach an assembly; "reach", the
     share of the pieces left that they place (an assembly 1), which still tells siblings apart where
     every rollout fails."""
+    rank_weight: float = 1.0
+    """The weight of the sibling loss beside the value loss (`learner.guide_learner`): how much the
+    network learns to order the children of one node, which is what the search asks of it."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
@@ -380,6 +383,10 @@ class GuideTrainConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
+        if self.rank_weight < 0:
+            raise RLLockError(f"--rank-weight must be >= 0, got {self.rank_weight}")
+        if self.batch_size % 2:
+            raise RLLockError(f"--batch-size must be even (pairs of siblings), got {self.batch_size}")
         if self.actors < 0:
             raise RLLockError(f"--actors must be >= 0, got {self.actors}")
         if self.label not in GUIDE_LABELS:

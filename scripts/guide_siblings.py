@@ -4,9 +4,12 @@
 on curriculum tasks, their children as the solver makes them, each labelled by the share of `--rollouts`
 plain searches from it that reach an assembly; saved encoded as the guide sees them, with their
 lookahead shares and their node.
-`fit A.npz [B.npz ...] --minutes M`: trains the guide network on the nodes whose index is not a multiple
-of 5 and, on the others (held out), counts sibling pairs with different labels ordered rightly by the
-lookahead share, by the network's value, and by the blend the guided search uses (value + 0.5 share).
+`fit A.npz [B.npz ...] --steps S [--label reach] [--rank-weight W]`: trains the guide network as
+`rllock train-guide` does (`learner.guide_learner`: value loss plus W times the sibling loss) on the
+nodes whose index is not a multiple of 5 and, on the others (held out), counts sibling pairs with
+different labels ordered rightly by the lookahead share, by the network's value, and by the blend the
+guided search uses (value + 0.5 share). The files are `rollouts` files or a `train-guide` run's replay
+snapshot (LOGDIR/replay.npz: its targets as that run made them).
 `retest A.npz [B.npz ...]`: is a label a property of the remainder or the rollouts' luck? The rollouts
 of each child split in two halves, how often one half's label orders sibling pairs as the other's does,
 for the share of rollouts that won and for the share of the pieces left they placed
@@ -31,7 +34,7 @@ import numpy as np
 import optax
 
 from actors.guide_actor import label_children
-from learner.guide_learner import guide_step
+from learner.guide_learner import guide_step, siblings
 from rllock.config import GuideConfig, GuideTrainConfig
 from rllock.search.curriculum import draw_task
 from rllock.search.guide import guide_values, init_guide
@@ -95,27 +98,39 @@ def pairs_right(score: np.ndarray, target: np.ndarray, group: np.ndarray, gap: f
     return right / max(total, 1), total
 
 
-def fit(paths: list[str], minutes: float) -> None:
+def fit(paths: list[str], steps: int, label: str, rank_weight: float, seed: int) -> None:
     data = [np.load(p) for p in paths]
-    d = {k: np.concatenate([x[k] for x in data]) for k in data[0].files}
+    d = {
+        k: np.concatenate([x[k] for x in data])
+        for k in data[0].files
+        if k not in ("size", "cursor", "added", "groups")
+    }
+    if "task" not in d:  # a replay snapshot: its nodes are its groups, the share is the last feature
+        d["task"], d["share"] = d["group"], d["features"][:, -1]
+    elif label == "reach":
+        d["target"] = d["reach"].mean(axis=1)
     held = d["task"] % 5 == 0
     log.info("%d states (%d held out), targets: %.0f%% zero, %.0f%% one", len(held), held.sum(),
              100 * (d["target"] == 0).mean(), 100 * (d["target"] == 1).mean())  # fmt: skip
     config = GuideConfig()
-    params = init_guide(config, jax.random.key(0))
+    params = init_guide(config, jax.random.key(seed))
     optimizer = optax.adam(1e-3)
     opt_state = optimizer.init(params)
     train = np.flatnonzero(~held)
-    rng = np.random.default_rng(0)
-    end, steps = time.monotonic() + 60 * minutes, 0
-    while time.monotonic() < end:
-        idx = rng.choice(train, 256)
+    rng = np.random.default_rng(seed)
+    started = time.monotonic()
+    for step in range(1, steps + 1):
+        first = rng.choice(train, 128)
+        second, paired = siblings(d["group"], first, rng)  # held-out nodes are whole groups: never drawn
+        idx = np.concatenate([first, second])
         batch = (jnp.asarray(d["window"][idx], jnp.float32), jnp.asarray(d["features"][idx]),
-                 jnp.asarray(d["target"][idx]))  # fmt: skip
-        params, opt_state, loss = guide_step(params, opt_state, batch, config=config, optimizer=optimizer)
-        steps += 1
-        if steps % 500 == 0:
-            log.info("step %d loss %.4f", steps, float(loss))
+                 jnp.asarray(d["target"][idx]), jnp.asarray(paired))  # fmt: skip
+        params, opt_state, (value, rank) = guide_step(
+            params, opt_state, batch, rank_weight, config=config, optimizer=optimizer
+        )
+        if step % 500 == 0:
+            log.info("step %d value loss %.4f sibling loss %.4f (%.0f s)", step, float(value), float(rank),
+                     time.monotonic() - started)  # fmt: skip
     test = np.flatnonzero(held)
     chunks = np.array_split(test, max(1, len(test) // 512))
     values = np.concatenate([
@@ -124,12 +139,17 @@ def fit(paths: list[str], minutes: float) -> None:
         for c in chunks
     ])  # fmt: skip
     target, group, share = d["target"][test], d["group"][test], d["share"][test]
+    won = {g for g in np.unique(group) if target[group == g].max() >= 1.0}
+    lost = ~np.isin(group, list(won))
     for name, score in (("lookahead share", share), ("network value", values), ("value + 0.5 share",
                         values + 0.5 * share)):  # fmt: skip
-        for gap in (0.0, 0.2, 0.5):
+        for gap in (0.0, 0.2):
             right, total = pairs_right(score, target, group, gap)
             log.info("held out: %-18s orders %.1f%% of %d sibling pairs (targets apart by more than %.1f)"
                      " rightly", name, 100 * right, total, gap)  # fmt: skip
+        right, total = pairs_right(score[lost], target[lost], group[lost], 0.0)
+        log.info("held out: %-18s orders %.1f%% of %d sibling pairs on nodes no child of which won",
+                 name, 100 * right, total)  # fmt: skip
     log.info("held out: mean |value - target| %.3f (predicting the mean: %.3f)",
              np.abs(values - target).mean(), np.abs(target - d["target"][train].mean()).mean())  # fmt: skip
 
@@ -198,7 +218,10 @@ def main() -> None:
     r.add_argument("--seed", type=int, default=0)
     f = sub.add_parser("fit")
     f.add_argument("paths", nargs="+")
-    f.add_argument("--minutes", type=float, default=3.0)
+    f.add_argument("--steps", type=int, default=3000)
+    f.add_argument("--label", choices=("won", "reach"), default="won")
+    f.add_argument("--rank-weight", type=float, default=0.0)
+    f.add_argument("--seed", type=int, default=0)
     t = sub.add_parser("retest")
     t.add_argument("paths", nargs="+")
     j = sub.add_parser("judge")
@@ -213,7 +236,7 @@ def main() -> None:
     elif args.cmd == "judge":
         judge(args.run, args.paths, args.label)
     else:
-        fit(args.paths, args.minutes)
+        fit(args.paths, args.steps, args.label, args.rank_weight, args.seed)
 
 
 if __name__ == "__main__":

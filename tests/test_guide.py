@@ -14,7 +14,7 @@ import pytest
 from helpers import run_cli
 
 from actors.guide_actor import Probes, label_children, value_target
-from learner.guide_learner import GuideBuffer, GuideLearner
+from learner.guide_learner import SIBLINGS_WITHIN, GuideBuffer, GuideLearner, siblings
 from rllock.config import GuideConfig, GuideTrainConfig, to_json
 from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
 from rllock.core.verifier import verify_labels
@@ -157,6 +157,8 @@ def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
     labelled = label_children(task, probes.kept, config, seed=3)
     children = sum(len(expand(task, s, seed=derive_seed(3, p))) for p, s in enumerate(probes.kept))
     assert len(labelled.target) == children == len(labelled.window) == len(labelled.features)
+    first = len(expand(task, probes.kept[0], seed=derive_seed(3, 0)))
+    assert labelled.group.tolist() == [0] * first + [1] * (children - first)
     assert set(np.unique(labelled.target)) <= {0.0, 0.5, 1.0} and labelled.target.max() == 1.0
     assert labelled.reach.shape == (children, 2) and ((labelled.reach >= 0) & (labelled.reach <= 1)).all()
     np.testing.assert_array_equal(labelled.target, (labelled.reach == 1.0).mean(axis=1))
@@ -215,20 +217,98 @@ def test_the_curriculum_draws_feasible_varied_tasks():
     assert grid.sum() == 300 and is_connected(grid)
 
 
-def test_the_guide_learner_fits_the_buffers_targets():
+def test_the_guide_learner_fits_the_buffers_targets_and_orders_siblings():
     buffer = GuideBuffer(64, 8)
     rng = np.random.default_rng(0)
     window = rng.integers(0, 2, size=(64, 8, 8, 8, CHANNELS)).astype(np.int8)
     features = rng.random((64, GLOBALS)).astype(np.float32)
-    target = (features[:, 0] > 0.5).astype(np.float32)  # learnable from one feature
-    counts = buffer.add(window, features, target)
+    # A node's level (feature 0, shared by its 4 children) sets most of a target; feature 1 orders them.
+    group = np.repeat(np.arange(16), 4)
+    features[:, 0] = features[group * 4, 0]
+    target = (0.8 * (features[:, 0] > 0.5) + 0.2 * features[:, 1]).astype(np.float32)
+    counts = buffer.add(window, features, target, group)
     assert counts.size == 64 and counts.added == 64
-    learner = GuideLearner(CONFIG, 3e-3, jax.random.PRNGKey(0))
-    batch = buffer.sample(64, 0)
+    learner = GuideLearner(CONFIG, 3e-3, jax.random.PRNGKey(0), rank_weight=1.0)
+    batch = buffer.sample(128, 0)
+    assert batch["paired"].all() and len(batch["target"]) == 128
     first = learner.update(batch)
-    for _ in range(60):
+    for _ in range(80):
         last = learner.update(batch)
-    assert last < 0.7 * first
+    assert last[0] < 0.7 * first[0] and last[1] < 0.7 * first[1]
+
+
+def test_sibling_pairs_are_drawn_from_the_ring_as_a_brute_force_search_finds_them():
+    rng = np.random.default_rng(1)
+    buffer = GuideBuffer(50, 4)
+    # Each push: a few nodes' children one after another, 1 to 8 of them (a node's most).
+    pushes = [np.repeat(np.arange(k), rng.integers(1, 9, size=k)) for k in rng.integers(1, 4, size=12)]
+    for local in pushes:
+        n = len(local)
+        buffer.add(np.zeros((n, 4, 4, 4, CHANNELS), np.int8), np.zeros((n, GLOBALS), np.float32),
+                   rng.random(n).astype(np.float32), local)  # fmt: skip
+    assert buffer.size == 50 and buffer.added == sum(len(p) for p in pushes) > 50
+    group = buffer.group
+    drawn: dict[int, set[int]] = {a: set() for a in range(50)}
+    for seed in range(300):
+        first = np.random.default_rng(seed).integers(0, 50, size=25)
+        second, paired = siblings(group, first, np.random.default_rng(seed + 1000))
+        for a, b, ok in zip(first.tolist(), second.tolist(), paired.tolist()):
+            assert ok == (b != a) and (group[b] == group[a])
+            drawn[a].add(b)
+    # Brute force: a state's siblings are the other states of its push's node, less those overwritten
+    # (and those across the ring's end from it, which the draw does not look for).
+    for a in range(50):
+        mates = {j for j in range(50) if j != a and group[j] == group[a] and abs(j - a) < SIBLINGS_WITHIN}
+        assert drawn[a] == (mates or {a}), a
+
+
+def test_the_sibling_loss_matches_a_direct_computation():
+    from learner.guide_learner import guide_losses
+
+    params = init_guide(CONFIG, jax.random.PRNGKey(3))
+    rng = np.random.default_rng(3)
+    window = rng.integers(0, 2, size=(8, 8, 8, 8, CHANNELS)).astype(np.float32)
+    features = rng.random((8, GLOBALS)).astype(np.float32)
+    target = np.array([0.2, 0.5, 0.5, 1.0, 0.7, 0.1, 0.5, 0.0], np.float32)
+    paired = np.array([True, True, False, True])
+    value, rank = guide_losses(params, CONFIG, window, features, target, paired)
+    from rllock.search.guide import GuideNet
+
+    logits = np.asarray(GuideNet(CONFIG).apply({"params": params}, window, features), np.float64)
+
+    def bce(x, y):
+        return np.log1p(np.exp(-abs(x))) + max(x, 0) - x * y
+
+    assert float(value) == pytest.approx(np.mean([bce(x, y) for x, y in zip(logits, target)]), rel=1e-4)
+    # Pairs (0, 4), (1, 5), (3, 7): pair 2 is not siblings, and no pair has equal targets here.
+    pairs = [(0, 4, 0.0), (1, 5, 1.0), (3, 7, 1.0)]
+    expected = np.mean([bce(logits[i] - logits[j], y) for i, j, y in pairs])
+    assert float(rank) == pytest.approx(expected, rel=1e-4)
+    _, none = guide_losses(params, CONFIG, window, features, target, np.zeros(4, bool))
+    assert float(none) == 0.0
+
+
+def test_a_replay_snapshot_keeps_the_sibling_groups_and_an_older_one_pairs_nothing(tmp_path):
+    buffer = GuideBuffer(16, 4)
+    for local in (np.array([0, 0, 1, 1, 1]), np.array([0, 0, 0])):
+        n = len(local)
+        buffer.add(np.ones((n, 4, 4, 4, CHANNELS), np.int8), np.ones((n, GLOBALS), np.float32),
+                   np.linspace(0, 1, n, dtype=np.float32), local)  # fmt: skip
+    assert buffer.group[:8].tolist() == [0, 0, 1, 1, 1, 2, 2, 2]
+    path = str(tmp_path / "replay.npz")
+    buffer.snapshot(path)
+    again = GuideBuffer(16, 4)
+    assert again.restore(path) == 8
+    np.testing.assert_array_equal(again.group[:8], buffer.group[:8])
+    again.add(np.zeros((2, 4, 4, 4, CHANNELS), np.int8), np.zeros((2, GLOBALS), np.float32),
+              np.zeros(2, np.float32), np.array([0, 0]))  # fmt: skip
+    assert again.group[8:10].tolist() == [3, 3]  # numbered after the restored groups
+    with np.load(path) as data:
+        older = {k: data[k] for k in data.files if k not in ("group", "groups")}
+    np.savez(tmp_path / "old.npz", **older)
+    old = GuideBuffer(16, 4)
+    old.restore(str(tmp_path / "old.npz"))
+    assert not old.sample(8, 0)["paired"].any()
 
 
 def _save_guide(folder, learner: GuideLearner, config: GuideTrainConfig):
@@ -341,7 +421,9 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     assert steps and steps[-1] > 0 and (run / "replay.npz").exists()
     events = EventAccumulator(str(run))
     events.Reload()
-    assert {"losses/value", "search/solved", "buffer/size"} <= set(events.Tags()["scalars"])
+    assert {"losses/value", "losses/siblings", "search/solved", "buffer/size"} <= set(
+        events.Tags()["scalars"]
+    )
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
