@@ -343,9 +343,11 @@ class GuideTrainConfig:
     """A child's value target: "won", the share of its rollouts that reach an assembly; "reach", the
     share of the pieces left that they place (an assembly 1), which still tells siblings apart where
     every rollout fails."""
-    rank_weight: float = 1.0
+    rank_weight: float = 0.0
     """The weight of the sibling loss beside the value loss (`learner.guide_learner`): how much the
-    network learns to order the children of one node, which is what the search asks of it."""
+    network learns to order the children of one node, which is what the search asks of it. Off by
+    default: on what 30 minutes on 2 cores label, it overfits sooner than the value loss alone, and
+    neither orders held-out siblings better than chance (docs/benchmarks.md)."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
