@@ -56,7 +56,7 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
     flags = tiny_flags(
         selfplay=SelfPlayConfig(actors=2, episodes_per_batch=4), validate_minutes=10.0, replay_ratio=0.25
     )
-    train = [sys.executable, "cluster/train_job.py", *flags, "--minutes", "4", "--logdir", str(logdir)]
+    train = [sys.executable, "cluster/train_job.py", *flags, "--minutes", "8", "--logdir", str(logdir)]
     for _ in range(10):
         submitted = subprocess.run(
             [*command, "--no-wait", "--", *train], cwd=ROOT, capture_output=True, text=True
@@ -85,7 +85,9 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
         60,
         logs,
     )
-    _wait_for("a learner step", lambda: _steps(logdir), 120, logs)
+    # The actors' first episodes wait for their compiled search: on a slow, busy machine (a 2-core VM
+    # while the other test worker compiles too) that took more than 100 s.
+    _wait_for("a learner step", lambda: _steps(logdir), 240, logs)
 
     # A worker node dies (SIGKILL to its processes): the learner keeps stepping on the other.
     ray_cluster.remove_node(workers[1], allow_graceful=False)
