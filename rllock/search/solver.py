@@ -19,8 +19,8 @@ import threading
 import time
 from collections.abc import Callable, Generator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, NamedTuple
+from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -199,9 +199,10 @@ class SamplingPool:
         held = getattr(self.local, "held", None)
         if held is None or held[0] is not task:
             topology = task.topology
-            copies = {
-                name: getattr(topology, name).copy()
-                for name in ("grid", "coords", "index", "nbr", "ray", "line")
+            copies: dict[str, Any] = {  # the arrays; n_lines, an int, stays
+                f.name: value.copy()
+                for f in fields(topology)
+                if isinstance(value := getattr(topology, f.name), np.ndarray)
             }
             held = self.local.held = (task, replace(task, topology=replace(topology, **copies)))
         return held[1]
@@ -282,8 +283,8 @@ class _Expander:
         """Give the threads this node's samples leave idle the samples of the node the search will most
         likely expand next: the children of the child with the most accepted continuations so far (the
         last such, as `children_of` orders them), seeded from a copy of the generator as the search
-        will seed them if that child is the one it takes. A wrong guess costs at most one sample's time
-        on one thread."""
+        will seed them if that child is the one it takes. A wrong guess costs the samples it started,
+        each on a thread that was idle when it started (the next node's samples may wait for them)."""
         done = [(f.result()[1], i) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
         if not done:
             return
