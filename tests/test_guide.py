@@ -412,6 +412,9 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     small = ["--search-seconds", "2", "--batch-size", "16", "--buffer-capacity", "4000", "--actors", "1",
              "--max-voxels", "300", "--max-pieces", "20", "--guide-features", "4,8", "--guide-hidden", "16",
              "--publish-every", "5", "--checkpoint-minutes", "0.2",
+             # One cheap rollout per child: the first labels reach the learner within its 36 s on a slow,
+             # loaded VM too (three rollouts of 512 expansions each did not, once).
+             "--probes", "1", "--rollouts", "1", "--rollout-expansions", "128",
              # No cap on learning from what was searched: the resumed run learns from its restored buffer
              # at once, not only after a new search, which a loaded machine may not finish in its 18 s.
              "--replay-ratio", "100000"]  # fmt: skip
