@@ -43,10 +43,10 @@ def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed(
 
 def test_workers_stop_at_the_time_limit_with_their_progress_summed(monkeypatch):
     task = make_task("desia-bunny", 80)  # none in a few seconds
-    # Every sample counts cheap: the cores go apart after two short windows and both workers search
+    # No window is busy enough: the cores go apart after two short windows and both workers search
     # (else worker 1 may wait the whole time, worker 0 on its core, and count no restart).
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
-    monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", float("inf"))
+    monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", float("inf"))
     stats, reports = SearchStats(), []
     started = time.monotonic()
     found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
@@ -107,15 +107,16 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
         pool.executor.shutdown()
 
 
-def test_worker_0_shares_the_cores_after_one_costly_window_and_gives_them_back_after_two_cheap_ones():
-    low, high = portfolio.APART_BELOW_SECONDS, portfolio.SHARED_FROM_SECONDS
-    assert low < high
-    between = (low + high) / 2
-    assert not shares_cores(False, (between,)) and shares_cores(True, (between,))  # each stays as it is
-    assert shares_cores(False, (high,)) and shares_cores(False, (low, high))  # one costly window shares
-    cheap = low * 0.99
-    assert shares_cores(True, (cheap,)) and shares_cores(True, (between, cheap))  # a first cheap window
-    assert not shares_cores(True, (cheap, cheap)) and not shares_cores(True, (high, cheap, cheap))
+def test_worker_0_keeps_the_cores_while_its_threads_are_busy_and_gives_them_back_for_good():
+    bound, windows = portfolio.KEEP_WHILE_BUSY, portfolio.APART_AFTER_WINDOWS
+    assert windows == 2 and 0 < bound < 1
+    idle, busy = bound - 0.1, bound + 0.1
+    assert shares_cores(True, (idle,))  # one window is not enough to judge
+    assert shares_cores(True, (busy, busy)) and shares_cores(True, (idle, busy, busy))
+    assert not shares_cores(True, (idle, idle)) and not shares_cores(True, (busy, idle, idle))
+    assert shares_cores(True, (bound + 0.05, bound - 0.05))  # the mean of the last two decides
+    assert not shares_cores(True, (bound - 0.05, bound - 0.06))
+    assert not shares_cores(False, (busy, busy))  # once apart, for good
 
 
 def _process_state(pid: int) -> str:
@@ -135,13 +136,12 @@ def _cpu_ticks(pid: int) -> int:
 
 
 def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(monkeypatch):
-    """With every sample counted costly, worker 0 samples on threads and worker 1 waits, using no CPU,
-    without a signal (it is never stopped); once samples count cheap it runs again; at the end no
+    """While every window counts busy enough, worker 0 samples on threads and worker 1 waits, using no
+    CPU, without a signal (it is never stopped); once none does it runs again; at the end no
     worker and no sampling thread is left."""
     task = make_task("desia-bunny", 80)  # none in a few seconds
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
-    monkeypatch.setattr(portfolio, "SHARED_FROM_SECONDS", 0.0)
-    monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", 0.0)
+    monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", 0.0)
     monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)
     sampled_on: list[tuple[float, str]] = []
     sample = solver.sample_accepted
@@ -158,9 +158,8 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
         now = time.monotonic() - started
         workers = [p.pid for p in mp.active_children() if p.pid is not None]
         seen.append((now, [(_process_state(pid), _cpu_ticks(pid)) for pid in workers]))
-        if now > 4:  # from here every sample counts cheap
-            monkeypatch.setattr(portfolio, "SHARED_FROM_SECONDS", 1.0)
-            monkeypatch.setattr(portfolio, "APART_BELOW_SECONDS", 1.0)
+        if now > 4:  # from here no window is busy enough
+            monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", float("inf"))
         return now > 8
 
     assert not list(portfolio_search(task, seed=0, workers=2, time_limit=30, stop=stop))
@@ -272,7 +271,7 @@ def stop():
 
 if __name__ == "__main__":
     portfolio.BALANCE_EVERY_SECONDS = 0.1
-    portfolio.SHARED_FROM_SECONDS = portfolio.APART_BELOW_SECONDS = 0.0  # every sample is costly
+    portfolio.KEEP_WHILE_BUSY = 0.0  # every window is busy enough
     task = make_task("desia-bunny", 80)
     list(portfolio.portfolio_search(task, seed=0, workers=2, time_limit=60, stop=stop))
 """

@@ -7,17 +7,17 @@ worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 
 On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process
 has compiled); the others are spawned processes. Worker 0 may also sample a node's children on threads
-(the same search node for node, sooner: `solver.SamplingPool`), and which pays depends on what one
-sample costs. Measured on 2 cores: two searches side by side each run as fast as one alone; one search
-on two threads runs 1.5-1.7x as fast where a sample costs 1.4-5.6 ms, 1.0x at 0.3 ms. A second seed
-pays by the spread of run times, a second thread surely but by less. So the crew watches the mean cost
-of worker 0's samples over windows of BALANCE_EVERY_SECONDS, which grows as a search goes deeper (spot
-at resolution 30: 1.3 ms in its first quarter second, 5 ms after four seconds): from SHARED_FROM_SECONDS
-worker 0 has the cores of workers 1..T-1 on T threads and those workers are paused (they wait between two
-node expansions, keeping their place and using no CPU); below APART_BELOW_SECONDS for APART_AFTER_WINDOWS
-windows in a row they go on and worker 0 samples alone again. Worker 0 has those cores from the start (a
-spawned worker waits before its first node): a costly search loses little to the start of a portfolio it
-would not use, or to its cheap first samples.
+(the same search node for node, sooner: `solver.SamplingPool`). A second seed pays by the spread of run
+times, a second thread surely but by less, and by how busy the search keeps it: two threads ran one
+search 1.5-1.7x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where a node's samples are
+few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start (a spawned worker
+waits before its first node: a search that keeps its threads busy loses little to a portfolio it would
+not use), and the crew measures how busy its threads are, the samples' seconds over the wall time, in
+windows of BALANCE_EVERY_SECONDS. Once the mean of the last APART_AFTER_WINDOWS windows is below
+KEEP_WHILE_BUSY of the T threads, the lent workers go on, each on its core, and worker 0 samples alone
+for the rest of the run. The measure is a ratio of two times on one machine, so a slower or faster
+machine decides alike; the milliseconds a sample costs, which decided before, did not (docs/benchmarks.md,
+"Every core, a sixth time").
 
 Why a worker pauses itself rather than being stopped by a signal: SIGSTOP could catch it while its queue's
 feeder thread held the lock that every worker's messages share, and worker 0's assembly then waited for
@@ -60,15 +60,14 @@ log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
-# Worker 0 has the cores of the workers it pauses while its samples cost at least the first, in seconds,
-# over a window, and gives them back below the second. Chosen from five hard cells on 2 cores
-# (docs/benchmarks.md, "Every core, a third time"), by the means of 1 s windows: 0.3 ms (cube4 K=9) and
-# 1.1-1.5 ms (desia-dog K=50), where two seeds gain more than two threads; 1.7-2.1 ms (bunny mesh at 16,
-# K=55), where both gain about as much; 1.9-3 ms (desia-bunny K=80 path) and 1.9-5 ms (spot mesh at 30,
-# K=255), where two threads gain more. The gap keeps a mean near one bound from switching back and forth.
-SHARED_FROM_SECONDS = 2.0e-3
-APART_BELOW_SECONDS = 1.6e-3
-BALANCE_EVERY_SECONDS = 1.0  # the mean is taken over this long a window: single samples vary tenfold
+# Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time,
+# the mean of the last APART_AFTER_WINDOWS windows. Chosen from five hard cells on 2 cores (docs/
+# benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows: 0.65 (cube4 K=9) and
+# 0.79-0.81 (desia-dog K=50), where two seeds gained more than two threads; 0.85 (bunny mesh at 16,
+# K=55), where both gained about as much; 0.86-0.92 (desia-bunny K=80 path, spot mesh at 30, K=255),
+# where two threads gained more.
+KEEP_WHILE_BUSY = 0.825
+BALANCE_EVERY_SECONDS = 1.0  # the share is taken over this long a window: single samples vary tenfold
 APART_AFTER_WINDOWS = 2
 
 
@@ -150,16 +149,14 @@ def _die_with_parent() -> bool:
     return parent is None or parent.is_alive()
 
 
-def shares_cores(shared: bool, means: tuple[float, ...]) -> bool:
-    """Whether worker 0 should sample on the lent workers' cores, now `shared` or not, given the mean cost
-    of its samples in the windows so far (`means`, the last one latest). One costly window shares them;
-    giving them back takes two cheap ones in a row, since a search's first samples are its cheapest
-    (module docstring) and the cores are worth most where samples are costly."""
-    if not shared:
-        return means[-1] >= SHARED_FROM_SECONDS
-    return len(means) < APART_AFTER_WINDOWS or any(
-        m >= APART_BELOW_SECONDS for m in means[-APART_AFTER_WINDOWS:]
-    )
+def shares_cores(shared: bool, busy: tuple[float, ...]) -> bool:
+    """Whether worker 0 should go on sampling on the lent workers' cores, now `shared` or not, given the
+    share of the time its threads were busy in the windows so far (`busy`, the last one latest): while
+    the mean of the last APART_AFTER_WINDOWS windows is at least KEEP_WHILE_BUSY, and never again once
+    they went apart (alone, worker 0 cannot show what its threads would do)."""
+    if not shared or len(busy) < APART_AFTER_WINDOWS:
+        return shared
+    return sum(busy[-APART_AFTER_WINDOWS:]) / APART_AFTER_WINDOWS >= KEEP_WHILE_BUSY
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -184,7 +181,7 @@ def portfolio_search(
     guide: Any = None,
     on_ray: bool = False,
 ) -> Generator[Found, None, None]:
-    """`solver.search` in `workers` processes, worker 0 sharing the cores by what its samples cost (module
+    """`solver.search` in `workers` processes, worker 0 sharing the cores while its threads are busy (module
     docstring), or with `on_ray` in as many Ray actors of one CPU on the cluster this process has joined:
     yields the distinct assemblies in the order they arrive, `seconds` counted by the parent, until the
     time limit or `stop()`; the caller stops it by closing the generator (or breaking out of its loop).
@@ -264,7 +261,7 @@ class _LocalCrew:
         if not self.pool.allowed:
             self.go.set()
         self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
-        self.means: tuple[float, ...] = ()  # worker 0's mean sample cost in the last windows
+        self.busy: tuple[float, ...] = ()  # the share of the time worker 0's threads were busy, by window
 
     def start(self) -> None:
         self.first.start()
@@ -272,30 +269,24 @@ class _LocalCrew:
             p.start()
 
     def balance(self, done: set[int]) -> None:
-        """Every BALANCE_EVERY_SECONDS: worker 0 on threads with the lent workers paused, or every worker
-        on a core of its own, by the mean cost of worker 0's samples in that window (`shares_cores`)."""
+        """Every BALANCE_EVERY_SECONDS: worker 0 goes on with the lent workers' cores, or gives them
+        back for good, by how busy its threads were (`shares_cores`); at once when it is done."""
         now, pool = time.monotonic(), self.pool
         then, seconds, samples = self.window
-        if not self.lent or now - then < BALANCE_EVERY_SECONDS:
+        if not pool.allowed or now - then < BALANCE_EVERY_SECONDS:
             return
         self.window = (now, pool.seconds, pool.samples)
         if pool.samples == samples and 0 not in done:
-            return
-        mean = (pool.seconds - seconds) / max(pool.samples - samples, 1)
-        self.means = (*self.means, mean)[-APART_AFTER_WINDOWS:]
-        shared = shares_cores(pool.allowed, self.means) and 0 not in done
-        if shared != pool.allowed:
-            pool.allowed = shared
-            if shared:
-                self.go.clear()
-            else:
-                self.go.set()
+            return  # no sample ended in the window (a long one running): it tells nothing
+        busy = (pool.seconds - seconds) / (now - then) / pool.threads
+        self.busy = (*self.busy, busy)[-APART_AFTER_WINDOWS:]
+        if 0 in done or not shares_cores(True, self.busy):
+            pool.allowed = False
+            self.go.set()
             log.info(
-                "a sample costs %.1f ms: %s",
-                1e3 * mean,
-                f"worker 0 samples on the cores of {self.lent} paused worker(s)"
-                if shared
-                else "every worker searches on a core of its own",
+                "worker 0's %d threads busy %.0f%% of the time: every worker searches on a core of its own",
+                pool.threads,
+                100 * sum(self.busy) / len(self.busy),
             )
 
     def get(self, timeout: float) -> tuple | None:
