@@ -294,3 +294,43 @@ def test_a_paused_worker_does_not_outlive_its_parent_killed_outright(tmp_path):
     while _process_state(worker) not in ("gone", "Z") and time.monotonic() < deadline:
         time.sleep(0.1)
     assert _process_state(worker) in ("gone", "Z")  # killed (a zombie until something reaps it)
+
+
+def test_a_lent_worker_says_once_that_it_has_started_up_and_then_waits_for_its_core():
+    halt, go, said, answers = threading.Event(), threading.Event(), [], []
+    stop = portfolio._Pausable(halt, go, lambda: said.append(threading.current_thread().name))
+    asking = threading.Thread(target=lambda: answers.append(stop.is_set()), name="worker")
+    asking.start()
+    asking.join(0.3)
+    assert said == ["worker"] and asking.is_alive() and not answers  # started up, now waiting
+    go.set()
+    asking.join(5)
+    assert answers == [False] and not stop.is_set() and said == ["worker"]  # said once only
+    halt.set()
+    assert stop.is_set()
+
+
+def test_worker_0_judges_its_threads_only_once_the_lent_workers_have_started_up():
+    """A lent worker's start-up takes CPU from worker 0's threads: windows before it do not count."""
+    task = make_task("cube4", 7)
+    jobs = [(task, s, 10.0, solver.SearchConfig(), None, i, None) for i, s in enumerate((0, 1))]
+    crew = portfolio._LocalCrew(jobs, children=8)
+    try:
+        pool = crew.pool
+        assert pool.allowed and not crew.go.is_set()
+
+        def idle_window() -> None:  # a window ago, and a sample of a millisecond since: threads idle
+            crew.window = (time.monotonic() - portfolio.BALANCE_EVERY_SECONDS, pool.seconds, pool.samples)
+            pool.took(1e-3)
+            crew.balance(done=set())
+
+        for _ in range(3):
+            idle_window()
+        assert pool.allowed and not crew.go.is_set() and crew.busy == ()  # still starting up
+        crew.started(1)
+        idle_window()
+        assert pool.allowed and len(crew.busy) == 1  # one window is not enough to judge
+        idle_window()
+        assert not pool.allowed and crew.go.is_set()  # two idle windows: the cores go apart
+    finally:
+        crew.pool.executor.shutdown()

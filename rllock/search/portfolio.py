@@ -12,8 +12,9 @@ times, a second thread surely but by less, and by how busy the search keeps it: 
 search 1.5-1.7x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where a node's samples are
 few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start (a spawned worker
 waits before its first node: a search that keeps its threads busy loses little to a portfolio it would
-not use), and the crew measures how busy its threads are, the samples' seconds over the wall time, in
-windows of BALANCE_EVERY_SECONDS. Once the mean of the last APART_AFTER_WINDOWS windows is below
+not use), and once the lent workers have started up (their start-up takes CPU from worker 0's threads)
+the crew measures how busy its threads are, the samples' seconds over the wall time, in windows of
+BALANCE_EVERY_SECONDS. Once the mean of the last APART_AFTER_WINDOWS windows is below
 KEEP_WHILE_BUSY of the T threads, the lent workers go on, each on its core, and worker 0 samples alone
 for the rest of the run. The measure is a ratio of two times on one machine, so a slower or faster
 machine decides alike; the milliseconds a sample costs, which decided before, did not (docs/benchmarks.md,
@@ -62,11 +63,11 @@ JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; the
 
 # Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time,
 # the mean of the last APART_AFTER_WINDOWS windows. Chosen from five hard cells on 2 cores (docs/
-# benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows: 0.65 (cube4 K=9) and
-# 0.79-0.81 (desia-dog K=50), where two seeds gained more than two threads; 0.85 (bunny mesh at 16,
-# K=55), where both gained about as much; 0.86-0.92 (desia-bunny K=80 path, spot mesh at 30, K=255),
-# where two threads gained more.
-KEEP_WHILE_BUSY = 0.825
+# benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows after the lent worker's
+# start-up, seeds 0 and 1: 0.67 (cube4 K=9) and 0.76-0.79 (desia-dog K=50), where two seeds gained more
+# than two threads; 0.81-0.84 (bunny mesh at 16, K=55), where both gained about as much; 0.88-0.91
+# (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more.
+KEEP_WHILE_BUSY = 0.83
 BALANCE_EVERY_SECONDS = 1.0  # the share is taken over this long a window: single samples vary tenfold
 APART_AFTER_WINDOWS = 2
 
@@ -115,12 +116,17 @@ PAUSE_POLL_SECONDS = 0.5  # a paused worker looks at the stop event at least thi
 
 class _Pausable:
     """The stop test of a spawned worker: while `go` is clear (worker 0 has its core) it waits there,
-    between two node expansions, then says whether `halt` is set."""
+    between two node expansions, then says whether `halt` is set. The first time it is asked, before
+    the worker's first node, it calls `started()`: the worker's start-up is over."""
 
-    def __init__(self, halt: Any, go: Any) -> None:
+    def __init__(self, halt: Any, go: Any, started: Callable[[], None]) -> None:
         self.halt, self.go = halt, go
+        self.started: Callable[[], None] | None = started
 
     def is_set(self) -> bool:
+        if self.started is not None:
+            self.started()
+            self.started = None
         while not self.go.is_set() and not self.halt.is_set():
             self.go.wait(PAUSE_POLL_SECONDS)
         return self.halt.is_set()
@@ -128,10 +134,12 @@ class _Pausable:
 
 def _work_locally(out: Any, halt: Any, go: Any, *job: Any) -> None:
     """`_work` in a spawned process, paused while `go` is clear (when it is a worker whose core may be
-    lent, else None)."""
+    lent, else None); a lent worker says ("started", its number) once it has started up."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if _die_with_parent():
-        _work(out, halt if go is None else _Pausable(halt, go), *job)
+        worker = job[5]
+        stop = halt if go is None else _Pausable(halt, go, lambda: out.put(("started", worker, None)))
+        _work(out, stop, *job)
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
@@ -205,7 +213,9 @@ def portfolio_search(
                 crew.check_alive(done)
                 continue
             kind, worker, payload = message
-            if kind == "found":
+            if kind == "started":
+                crew.started(worker)
+            elif kind == "found":
                 key = assembly_key(payload.labels)
                 if key not in seen:
                     seen.add(key)
@@ -262,17 +272,25 @@ class _LocalCrew:
             self.go.set()
         self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
         self.busy: tuple[float, ...] = ()  # the share of the time worker 0's threads were busy, by window
+        self.waiting: set[int] = set()  # the lent workers that have started up
 
     def start(self) -> None:
         self.first.start()
         for p in self.processes:
             p.start()
 
+    def started(self, worker: int) -> None:
+        self.waiting.add(worker)
+
     def balance(self, done: set[int]) -> None:
-        """Every BALANCE_EVERY_SECONDS: worker 0 goes on with the lent workers' cores, or gives them
-        back for good, by how busy its threads were (`shares_cores`); at once when it is done."""
+        """Every BALANCE_EVERY_SECONDS once the lent workers have started up (their start-up takes CPU
+        from worker 0's threads): worker 0 goes on with the lent workers' cores, or gives them back for
+        good, by how busy its threads were (`shares_cores`); at once when it is done."""
         now, pool = time.monotonic(), self.pool
         then, seconds, samples = self.window
+        if pool.allowed and len(self.waiting) < self.lent and 0 not in done:
+            self.window = (now, pool.seconds, pool.samples)
+            return
         if not pool.allowed or now - then < BALANCE_EVERY_SECONDS:
             return
         self.window = (now, pool.seconds, pool.samples)
@@ -280,6 +298,7 @@ class _LocalCrew:
             return  # no sample ended in the window (a long one running): it tells nothing
         busy = (pool.seconds - seconds) / (now - then) / pool.threads
         self.busy = (*self.busy, busy)[-APART_AFTER_WINDOWS:]
+        log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - then)
         if 0 in done or not shares_cores(True, self.busy):
             pool.allowed = False
             self.go.set()
@@ -369,6 +388,9 @@ class _RayCrew:
             return self.out.get(timeout=timeout)
         except Empty:
             return None
+
+    def started(self, worker: int) -> None:
+        """Ray workers do not wait for a lent core."""
 
     def balance(self, done: set[int]) -> None:
         """Nothing to share: each Ray worker has its one CPU."""
