@@ -43,10 +43,11 @@ def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed(
 
 def test_workers_stop_at_the_time_limit_with_their_progress_summed(monkeypatch):
     task = make_task("desia-bunny", 80)  # none in a few seconds
-    # No window is busy enough: the cores go apart after two short windows and both workers search
+    # No share is busy enough: the cores go apart once worker 1 has started up and both workers search
     # (else worker 1 may wait the whole time, worker 0 on its core, and count no restart).
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
     monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", float("inf"))
+    monkeypatch.setattr(portfolio, "JUDGE_AFTER_SECONDS", 0.0)
     stats, reports = SearchStats(), []
     started = time.monotonic()
     found = list(portfolio_search(task, seed=0, workers=2, time_limit=4, stats=stats, report=reports.append))
@@ -108,15 +109,13 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
 
 
 def test_worker_0_keeps_the_cores_while_its_threads_are_busy_and_gives_them_back_for_good():
-    bound, windows = portfolio.KEEP_WHILE_BUSY, portfolio.APART_AFTER_WINDOWS
-    assert windows == 2 and 0 < bound < 1
-    idle, busy = bound - 0.1, bound + 0.1
-    assert shares_cores(True, (idle,))  # one window is not enough to judge
-    assert shares_cores(True, (busy, busy)) and shares_cores(True, (idle, busy, busy))
-    assert not shares_cores(True, (idle, idle)) and not shares_cores(True, (busy, idle, idle))
-    assert shares_cores(True, (bound + 0.05, bound - 0.05))  # the mean of the last two decides
-    assert not shares_cores(True, (bound - 0.05, bound - 0.06))
-    assert not shares_cores(False, (busy, busy))  # once apart, for good
+    bound, judge = portfolio.KEEP_WHILE_BUSY, portfolio.JUDGE_AFTER_SECONDS
+    assert 0 < bound < 1 and judge > 0
+    idle, busy = bound - 0.01, bound + 0.01
+    assert shares_cores(True, idle, 0.9 * judge)  # too soon to judge
+    assert shares_cores(True, busy, judge) and shares_cores(True, bound, 10 * judge)
+    assert not shares_cores(True, idle, judge) and not shares_cores(True, idle, 10 * judge)
+    assert not shares_cores(False, busy, judge) and not shares_cores(False, busy, 0.0)  # apart for good
 
 
 def _process_state(pid: int) -> str:
@@ -136,12 +135,13 @@ def _cpu_ticks(pid: int) -> int:
 
 
 def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(monkeypatch):
-    """While every window counts busy enough, worker 0 samples on threads and worker 1 waits, using no
+    """While any share counts busy enough, worker 0 samples on threads and worker 1 waits, using no
     CPU, without a signal (it is never stopped); once none does it runs again; at the end no
     worker and no sampling thread is left."""
     task = make_task("desia-bunny", 80)  # none in a few seconds
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
     monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", 0.0)
+    monkeypatch.setattr(portfolio, "JUDGE_AFTER_SECONDS", 0.0)
     monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)
     sampled_on: list[tuple[float, str]] = []
     sample = solver.sample_accepted
@@ -158,7 +158,7 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
         now = time.monotonic() - started
         workers = [p.pid for p in mp.active_children() if p.pid is not None]
         seen.append((now, [(_process_state(pid), _cpu_ticks(pid)) for pid in workers]))
-        if now > 4:  # from here no window is busy enough
+        if now > 4:  # from here no share is busy enough
             monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", float("inf"))
         return now > 8
 
@@ -271,7 +271,7 @@ def stop():
 
 if __name__ == "__main__":
     portfolio.BALANCE_EVERY_SECONDS = 0.1
-    portfolio.KEEP_WHILE_BUSY = 0.0  # every window is busy enough
+    portfolio.KEEP_WHILE_BUSY = 0.0  # any share is busy enough
     task = make_task("desia-bunny", 80)
     list(portfolio.portfolio_search(task, seed=0, workers=2, time_limit=60, stop=stop))
 """
@@ -310,27 +310,33 @@ def test_a_lent_worker_says_once_that_it_has_started_up_and_then_waits_for_its_c
     assert stop.is_set()
 
 
-def test_worker_0_judges_its_threads_only_once_the_lent_workers_have_started_up():
-    """A lent worker's start-up takes CPU from worker 0's threads: windows before it do not count."""
+def test_worker_0_judges_its_threads_only_once_the_lent_workers_have_started_up(monkeypatch):
+    """A lent worker's start-up takes CPU from worker 0's threads: the time before it does not count."""
     task = make_task("cube4", 7)
     jobs = [(task, s, 10.0, solver.SearchConfig(), None, i, None) for i, s in enumerate((0, 1))]
     crew = portfolio._LocalCrew(jobs, children=8)
+    clock = [1000.0]
+    monkeypatch.setattr(portfolio.time, "monotonic", lambda: clock[0])
     try:
         pool = crew.pool
         assert pool.allowed and not crew.go.is_set()
 
-        def idle_window() -> None:  # a window ago, and a sample of a millisecond since: threads idle
-            crew.window = (time.monotonic() - portfolio.BALANCE_EVERY_SECONDS, pool.seconds, pool.samples)
-            pool.took(1e-3)
+        def second(busy: float) -> None:  # a second in which worker 0's threads are busy this share
+            clock[0] += 1.0
+            pool.took(busy * pool.threads)
             crew.balance(done=set())
 
-        for _ in range(3):
-            idle_window()
-        assert pool.allowed and not crew.go.is_set() and crew.busy == ()  # still starting up
+        for _ in range(5):
+            second(0.0)
+        assert pool.allowed and not crew.go.is_set()  # still starting up: idle threads do not count
         crew.started(1)
-        idle_window()
-        assert pool.allowed and len(crew.busy) == 1  # one window is not enough to judge
-        idle_window()
-        assert not pool.allowed and crew.go.is_set()  # two idle windows: the cores go apart
+        for _ in range(5):
+            second(1.0)
+        assert pool.allowed and not crew.go.is_set()  # busy since: worker 0 keeps the cores
+        for _ in range(5):  # the share since the start-up falls to 0.5, below the bound
+            second(0.0)
+        assert not pool.allowed and crew.go.is_set()  # the cores go apart
+        second(1.0)
+        assert not pool.allowed  # for good
     finally:
         crew.pool.executor.shutdown()

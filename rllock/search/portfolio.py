@@ -13,9 +13,9 @@ search 1.5-1.7x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where
 few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start (a spawned worker
 waits before its first node: a search that keeps its threads busy loses little to a portfolio it would
 not use), and once the lent workers have started up (their start-up takes CPU from worker 0's threads)
-the crew measures how busy its threads are, the samples' seconds over the wall time, in windows of
-BALANCE_EVERY_SECONDS. Once the mean of the last APART_AFTER_WINDOWS windows is below
-KEEP_WHILE_BUSY of the T threads, the lent workers go on, each on its core, and worker 0 samples alone
+the crew measures how busy its threads are, the samples' seconds over the wall time, every
+BALANCE_EVERY_SECONDS. Once the share since then is below KEEP_WHILE_BUSY of the T threads (judged
+from JUDGE_AFTER_SECONDS on), the lent workers go on, each on its core, and worker 0 samples alone
 for the rest of the run. The measure is a ratio of two times on one machine, so a slower or faster
 machine decides alike; the milliseconds a sample costs, which decided before, did not (docs/benchmarks.md,
 "Every core, a sixth time").
@@ -61,15 +61,16 @@ log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
-# Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time,
-# the mean of the last APART_AFTER_WINDOWS windows. Chosen from five hard cells on 2 cores (docs/
-# benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows after the lent worker's
-# start-up, seeds 0 and 1: 0.67 (cube4 K=9) and 0.76-0.79 (desia-dog K=50), where two seeds gained more
-# than two threads; 0.81-0.84 (bunny mesh at 16, K=55), where both gained about as much; 0.88-0.91
-# (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more.
+# Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time
+# since the lent workers started up, judged from JUDGE_AFTER_SECONDS on. Chosen from five hard cells on 2
+# cores (docs/benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows after the lent
+# worker's start-up, seeds 0 and 1: 0.67 (cube4 K=9) and 0.76-0.79 (desia-dog K=50), where two seeds
+# gained more than two threads; 0.81-0.84 (bunny mesh at 16, K=55), where both gained about as much;
+# 0.88-0.91 (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more. Single 1 s
+# windows vary by +-0.05 (desia-bunny: 0.82-0.92), hence the share over all the time so far.
 KEEP_WHILE_BUSY = 0.83
-BALANCE_EVERY_SECONDS = 1.0  # the share is taken over this long a window: single samples vary tenfold
-APART_AFTER_WINDOWS = 2
+JUDGE_AFTER_SECONDS = 2.0
+BALANCE_EVERY_SECONDS = 1.0  # how often the share is looked at
 
 
 def worker_seed(seed: int, worker: int) -> int:
@@ -157,14 +158,14 @@ def _die_with_parent() -> bool:
     return parent is None or parent.is_alive()
 
 
-def shares_cores(shared: bool, busy: tuple[float, ...]) -> bool:
+def shares_cores(shared: bool, busy: float, seconds: float) -> bool:
     """Whether worker 0 should go on sampling on the lent workers' cores, now `shared` or not, given the
-    share of the time its threads were busy in the windows so far (`busy`, the last one latest): while
-    the mean of the last APART_AFTER_WINDOWS windows is at least KEEP_WHILE_BUSY, and never again once
-    they went apart (alone, worker 0 cannot show what its threads would do)."""
-    if not shared or len(busy) < APART_AFTER_WINDOWS:
+    share `busy` of the `seconds` since the lent workers started up that its threads were busy: while it
+    is at least KEEP_WHILE_BUSY (judged from JUDGE_AFTER_SECONDS on), and never again once they went
+    apart (alone, worker 0 cannot show what its threads would do)."""
+    if not shared or seconds < JUDGE_AFTER_SECONDS:
         return shared
-    return sum(busy[-APART_AFTER_WINDOWS:]) / APART_AFTER_WINDOWS >= KEEP_WHILE_BUSY
+    return busy >= KEEP_WHILE_BUSY
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -270,8 +271,9 @@ class _LocalCrew:
         ]
         if not self.pool.allowed:
             self.go.set()
-        self.window = (time.monotonic(), 0.0, 0)  # (since, worker 0's sample seconds and count then)
-        self.busy: tuple[float, ...] = ()  # the share of the time worker 0's threads were busy, by window
+        self.since: tuple[float, float] | None = None  # (when the lent workers had started up, worker
+        # 0's sample seconds then)
+        self.looked = 0.0  # when the share was last looked at
         self.waiting: set[int] = set()  # the lent workers that have started up
 
     def start(self) -> None:
@@ -281,31 +283,29 @@ class _LocalCrew:
 
     def started(self, worker: int) -> None:
         self.waiting.add(worker)
+        if len(self.waiting) == self.lent:
+            self.since = (time.monotonic(), self.pool.seconds)
 
     def balance(self, done: set[int]) -> None:
         """Every BALANCE_EVERY_SECONDS once the lent workers have started up (their start-up takes CPU
         from worker 0's threads): worker 0 goes on with the lent workers' cores, or gives them back for
-        good, by how busy its threads were (`shares_cores`); at once when it is done."""
+        good, by how busy its threads have been since (`shares_cores`); at once when it is done."""
         now, pool = time.monotonic(), self.pool
-        then, seconds, samples = self.window
-        if pool.allowed and len(self.waiting) < self.lent and 0 not in done:
-            self.window = (now, pool.seconds, pool.samples)
+        if not pool.allowed or (now - self.looked < BALANCE_EVERY_SECONDS and 0 not in done):
             return
-        if not pool.allowed or now - then < BALANCE_EVERY_SECONDS:
+        self.looked = now
+        if self.since is None and 0 not in done:
             return
-        self.window = (now, pool.seconds, pool.samples)
-        if pool.samples == samples and 0 not in done:
-            return  # no sample ended in the window (a long one running): it tells nothing
-        busy = (pool.seconds - seconds) / (now - then) / pool.threads
-        self.busy = (*self.busy, busy)[-APART_AFTER_WINDOWS:]
+        then, seconds = self.since or (now, pool.seconds)
+        busy = (pool.seconds - seconds) / max(now - then, 1e-9) / pool.threads
         log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - then)
-        if 0 in done or not shares_cores(True, self.busy):
+        if 0 in done or not shares_cores(True, busy, now - then):
             pool.allowed = False
             self.go.set()
             log.info(
                 "worker 0's %d threads busy %.0f%% of the time: every worker searches on a core of its own",
                 pool.threads,
-                100 * sum(self.busy) / len(self.busy),
+                100 * busy,
             )
 
     def get(self, timeout: float) -> tuple | None:
