@@ -96,10 +96,10 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
     pool = SamplingPool.start(2)
     try:
         assert not pool.worth_it(8)  # nothing measured yet
-        pool.took(1e-4)
+        pool.took(1e-4, 0.0)
         assert not pool.worth_it(8)
         for _ in range(20):
-            pool.took(2e-3)
+            pool.took(2e-3, 0.0)
         assert pool.worth_it(8) and not pool.worth_it(1)
         pool.allowed = False  # a portfolio's other workers have the cores
         assert not pool.worth_it(8)
@@ -323,13 +323,14 @@ def test_worker_0_judges_its_threads_only_once_the_lent_workers_have_started_up(
 
         def second(busy: float) -> None:  # a second in which worker 0's threads are busy this share
             clock[0] += 1.0
-            pool.took(busy * pool.threads)
+            pool.took(busy * pool.threads, began=clock[0] - 0.5)
             crew.balance(done=set())
 
         for _ in range(5):
             second(0.0)
         assert pool.allowed and not crew.go.is_set()  # still starting up: idle threads do not count
         crew.started(1)
+        pool.took(50.0, began=clock[0] - 1.0)  # a long sample begun before the start-up: not counted
         for _ in range(5):
             second(1.0)
         assert pool.allowed and not crew.go.is_set()  # busy since: worker 0 keeps the cores

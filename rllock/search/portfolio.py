@@ -13,8 +13,8 @@ search 1.5-1.7x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where
 few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start (a spawned worker
 waits before its first node: a search that keeps its threads busy loses little to a portfolio it would
 not use), and once the lent workers have started up (their start-up takes CPU from worker 0's threads)
-the crew measures how busy its threads are, the samples' seconds over the wall time, every
-BALANCE_EVERY_SECONDS. Once the share since then is below KEEP_WHILE_BUSY of the T threads (judged
+the crew measures how busy its threads are, the CPU seconds of the samples begun since over the wall
+time, every BALANCE_EVERY_SECONDS. Once the share since then is below KEEP_WHILE_BUSY of the T threads (judged
 from JUDGE_AFTER_SECONDS on), the lent workers go on, each on its core, and worker 0 samples alone
 for the rest of the run. The measure is a ratio of two times on one machine, so a slower or faster
 machine decides alike; the milliseconds a sample costs, which decided before, did not (docs/benchmarks.md,
@@ -63,12 +63,11 @@ JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; the
 
 # Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time
 # since the lent workers started up, judged from JUDGE_AFTER_SECONDS on. Chosen from five hard cells on 2
-# cores (docs/benchmarks.md, "Every core, a sixth time"), by their first two 1 s windows after the lent
-# worker's start-up, seeds 0 and 1: 0.67 (cube4 K=9) and 0.76-0.79 (desia-dog K=50), where two seeds
-# gained more than two threads; 0.81-0.84 (bunny mesh at 16, K=55), where both gained about as much;
-# 0.88-0.91 (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more. Single 1 s
-# windows vary by +-0.05 (desia-bunny: 0.82-0.92), hence the share over all the time so far.
-KEEP_WHILE_BUSY = 0.83
+# cores (docs/benchmarks.md, "Every core, a sixth time"), by the share 2 s after the start-up, seeds 0
+# and 1: 0.56-0.58 (cube4 K=9) and 0.69-0.74 (desia-dog K=50, 0.76 at most later), where two seeds gained
+# more than two threads; 0.80-0.82 (bunny mesh at 16, K=55), where both gained about as much; 0.84-0.89
+# (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more.
+KEEP_WHILE_BUSY = 0.80
 JUDGE_AFTER_SECONDS = 2.0
 BALANCE_EVERY_SECONDS = 1.0  # how often the share is looked at
 
@@ -271,8 +270,7 @@ class _LocalCrew:
         ]
         if not self.pool.allowed:
             self.go.set()
-        self.since: tuple[float, float] | None = None  # (when the lent workers had started up, worker
-        # 0's sample seconds then)
+        self.since: float | None = None  # when the lent workers had started up
         self.looked = 0.0  # when the share was last looked at
         self.waiting: set[int] = set()  # the lent workers that have started up
 
@@ -284,7 +282,8 @@ class _LocalCrew:
     def started(self, worker: int) -> None:
         self.waiting.add(worker)
         if len(self.waiting) == self.lent:
-            self.since = (time.monotonic(), self.pool.seconds)
+            self.since = time.monotonic()
+            self.pool.count_from(self.since)
 
     def balance(self, done: set[int]) -> None:
         """Every BALANCE_EVERY_SECONDS once the lent workers have started up (their start-up takes CPU
@@ -296,8 +295,8 @@ class _LocalCrew:
         self.looked = now
         if self.since is None and 0 not in done:
             return
-        then, seconds = self.since or (now, pool.seconds)
-        busy = (pool.seconds - seconds) / max(now - then, 1e-9) / pool.threads
+        then = now if self.since is None else self.since
+        busy = pool.counted / max(now - then, 1e-9) / pool.threads
         log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - then)
         if 0 in done or not shares_cores(True, busy, now - then):
             pool.allowed = False

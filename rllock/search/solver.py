@@ -173,8 +173,9 @@ THREADED_FROM_SECONDS = 0.5e-3
 @dataclass
 class SamplingPool:
     """The threads a node's children are sampled on, a running mean of one sample's seconds, and the
-    samples' seconds and count in all. A portfolio (`rllock.search.portfolio`) turns its worker 0's
-    threads off (`allowed`) while the other workers have the cores; the figures are kept either way.
+    samples' seconds and count in all (CPU seconds of the thread that ran each). A portfolio
+    (`rllock.search.portfolio`) turns its worker 0's threads off (`allowed`) while the other workers
+    have the cores; the figures are kept either way.
     `guessed` counts the samples run ahead for a guessed next node (`_Expander`), `reused` those of
     them the search then took."""
 
@@ -186,6 +187,9 @@ class SamplingPool:
     samples: int = 0
     guessed: int = 0
     reused: int = 0
+    counted_from: float = 0.0
+    """`counted` sums the samples begun from this moment (`time.monotonic()`) on."""
+    counted: float = 0.0
     local: threading.local = field(default_factory=threading.local)
 
     @classmethod
@@ -210,11 +214,19 @@ class SamplingPool:
     def worth_it(self, samples: int) -> bool:
         return self.allowed and samples > 1 and self.sample_seconds >= THREADED_FROM_SECONDS
 
-    def took(self, seconds: float) -> None:
+    def count_from(self, moment: float) -> None:
+        """`counted` from now on sums the samples begun at `moment` or later: a sample running then may
+        have begun long before (the first, which loads the compiled sampler, takes most of a second)."""
+        self.counted_from, self.counted = moment, 0.0
+
+    def took(self, seconds: float, began: float) -> None:
+        """A sample begun at `began` (`time.monotonic()`) took `seconds` of its thread's CPU time."""
         # Called from the pool's threads at once: an update lost between two of them only blurs a mean.
         self.sample_seconds += 0.1 * (seconds - self.sample_seconds)
         self.seconds += seconds
         self.samples += 1
+        if began >= self.counted_from:
+            self.counted += seconds
 
 
 @dataclass
@@ -321,7 +333,9 @@ class _Expander:
         config = self.config
         task = self.task if self.pool is None else self.pool.own(self.task)
         deep = config.deep(task)
-        started = time.perf_counter()
+        # CPU time of this thread: a sample's wall time also counts the moments another thread or process
+        # had the core, which made two threads look busier than they were (a share over 1 was seen).
+        began, started = time.monotonic(), time.thread_time()
         accepted = sample_accepted(
             task,
             state,
@@ -332,7 +346,7 @@ class _Expander:
             wide_seeds=deep,
         )
         if self.pool is not None:
-            self.pool.took(time.perf_counter() - started)
+            self.pool.took(time.thread_time() - started, began)
         if deep and len(accepted):
             return tightest_subset(task, state, accepted, config.children, seed), len(accepted)
         return distinct_subset(accepted, config.children, seed), len(accepted)
