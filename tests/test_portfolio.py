@@ -103,19 +103,18 @@ def test_threads_are_used_only_once_samples_are_long_enough_to_share():
         assert pool.worth_it(8) and not pool.worth_it(1)
         pool.allowed = False  # a portfolio's other workers have the cores
         assert not pool.worth_it(8)
-        assert pool.samples == 21 and pool.seconds == pytest.approx(1e-4 + 20 * 2e-3)
+        assert pool.counted == pytest.approx(1e-4 + 20 * 2e-3)  # nothing asked to count from later
     finally:
         pool.executor.shutdown()
 
 
-def test_worker_0_keeps_the_cores_while_its_threads_are_busy_and_gives_them_back_for_good():
+def test_worker_0_keeps_the_cores_while_its_threads_are_busy():
     bound, judge = portfolio.KEEP_WHILE_BUSY, portfolio.JUDGE_AFTER_SECONDS
     assert 0 < bound < 1 and judge > 0
     idle, busy = bound - 0.01, bound + 0.01
-    assert shares_cores(True, idle, 0.9 * judge)  # too soon to judge
-    assert shares_cores(True, busy, judge) and shares_cores(True, bound, 10 * judge)
-    assert not shares_cores(True, idle, judge) and not shares_cores(True, idle, 10 * judge)
-    assert not shares_cores(False, busy, judge) and not shares_cores(False, busy, 0.0)  # apart for good
+    assert shares_cores(idle, 0.9 * judge)  # too soon to judge
+    assert shares_cores(busy, judge) and shares_cores(bound, 10 * judge)
+    assert not shares_cores(idle, judge) and not shares_cores(idle, 10 * judge)
 
 
 def _process_state(pid: int) -> str:

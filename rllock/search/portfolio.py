@@ -157,14 +157,12 @@ def _die_with_parent() -> bool:
     return parent is None or parent.is_alive()
 
 
-def shares_cores(shared: bool, busy: float, seconds: float) -> bool:
-    """Whether worker 0 should go on sampling on the lent workers' cores, now `shared` or not, given the
-    share `busy` of the `seconds` since the lent workers started up that its threads were busy: while it
-    is at least KEEP_WHILE_BUSY (judged from JUDGE_AFTER_SECONDS on), and never again once they went
-    apart (alone, worker 0 cannot show what its threads would do)."""
-    if not shared or seconds < JUDGE_AFTER_SECONDS:
-        return shared
-    return busy >= KEEP_WHILE_BUSY
+def shares_cores(busy: float, seconds: float) -> bool:
+    """Whether worker 0 should go on sampling on the lent workers' cores, given the share `busy` of the
+    `seconds` since the lent workers started up that its threads were busy: while it is at least
+    KEEP_WHILE_BUSY, judged from JUDGE_AFTER_SECONDS on. Once they went apart it is not asked again:
+    alone, worker 0 cannot show what its threads would do."""
+    return seconds < JUDGE_AFTER_SECONDS or busy >= KEEP_WHILE_BUSY
 
 
 def merge_stats(parts: list[SearchStats], into: SearchStats) -> None:
@@ -290,22 +288,24 @@ class _LocalCrew:
         from worker 0's threads): worker 0 goes on with the lent workers' cores, or gives them back for
         good, by how busy its threads have been since (`shares_cores`); at once when it is done."""
         now, pool = time.monotonic(), self.pool
-        if not pool.allowed or (now - self.looked < BALANCE_EVERY_SECONDS and 0 not in done):
+        if not pool.allowed:
+            return
+        if 0 in done:
+            self.give_back("worker 0 has ended")
+            return
+        if self.since is None or now - self.looked < BALANCE_EVERY_SECONDS:
             return
         self.looked = now
-        if self.since is None and 0 not in done:
-            return
-        then = now if self.since is None else self.since
-        busy = pool.counted / max(now - then, 1e-9) / pool.threads
-        log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - then)
-        if 0 in done or not shares_cores(True, busy, now - then):
-            pool.allowed = False
-            self.go.set()
-            log.info(
-                "worker 0's %d threads busy %.0f%% of the time: every worker searches on a core of its own",
-                pool.threads,
-                100 * busy,
-            )
+        busy = pool.counted / max(now - self.since, 1e-9) / pool.threads
+        log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - self.since)
+        if not shares_cores(busy, now - self.since):
+            self.give_back(f"worker 0's {pool.threads} threads busy {busy:.0%} of the time")
+
+    def give_back(self, why: str) -> None:
+        """The lent workers go on, each on its core, and worker 0 samples alone, for good."""
+        self.pool.allowed = False
+        self.go.set()
+        log.info("%s: every worker searches on a core of its own", why)
 
     def get(self, timeout: float) -> tuple | None:
         try:

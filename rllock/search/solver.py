@@ -173,9 +173,9 @@ THREADED_FROM_SECONDS = 0.5e-3
 @dataclass
 class SamplingPool:
     """The threads a node's children are sampled on, a running mean of one sample's seconds, and the
-    samples' seconds and count in all (CPU seconds of the thread that ran each). A portfolio
-    (`rllock.search.portfolio`) turns its worker 0's threads off (`allowed`) while the other workers
-    have the cores; the figures are kept either way.
+    seconds of the samples begun since a moment (`count_from`; each sample's CPU time on the thread
+    that ran it). A portfolio (`rllock.search.portfolio`) turns its worker 0's threads off (`allowed`)
+    while the other workers have the cores; the figures are kept either way.
     `guessed` counts the samples run ahead for a guessed next node (`_Expander`), `reused` those of
     them the search then took."""
 
@@ -183,8 +183,6 @@ class SamplingPool:
     threads: int
     sample_seconds: float = 0.0
     allowed: bool = True
-    seconds: float = 0.0
-    samples: int = 0
     guessed: int = 0
     reused: int = 0
     counted_from: float = 0.0
@@ -223,8 +221,6 @@ class SamplingPool:
         """A sample begun at `began` (`time.monotonic()`) took `seconds` of its thread's CPU time."""
         # Called from the pool's threads at once: an update lost between two of them only blurs a mean.
         self.sample_seconds += 0.1 * (seconds - self.sample_seconds)
-        self.seconds += seconds
-        self.samples += 1
         if began >= self.counted_from:
             self.counted += seconds
 
