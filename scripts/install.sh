@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Creates .venv and installs the pinned dependencies (requirements.lock) and rllock itself.
 # Re-runs only when requirements.lock or pyproject.toml change. Needs only Python 3.11+.
+# Then compiles rllock's numba code into its cache (a no-op load when nothing changed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}"
@@ -14,3 +15,6 @@ if [ ! -x .venv/bin/python ] || [ "$(cat .venv/.install-stamp 2>/dev/null)" != "
   .venv/bin/python -m pip install --quiet --no-deps -e .
   echo "$stamp_value" > .venv/.install-stamp
 fi
+# Compile the sampler and checkers into numba's cache now (35-40 s on a cold cache, a few seconds when
+# warm), not inside the first command's time limit (rllock/core/precompile.py).
+.venv/bin/python -m rllock.core.precompile

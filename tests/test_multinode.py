@@ -57,12 +57,18 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
         selfplay=SelfPlayConfig(actors=2, episodes_per_batch=4), validate_minutes=10.0, replay_ratio=0.25
     )
     train = [sys.executable, "cluster/train_job.py", *flags, "--minutes", "8", "--logdir", str(logdir)]
-    for _ in range(10):
+    # A head node under load may not have its job agent up yet (30 s were not enough beside the other
+    # pytest worker on a slow VM); Ray's own words say to retry.
+    agent_deadline = time.monotonic() + 180
+    while True:
         submitted = subprocess.run(
             [*command, "--no-wait", "--", *train], cwd=ROOT, capture_output=True, text=True
         )
-        # A head node under load may not have its job agent up yet; Ray's own words say to retry.
-        if submitted.returncode == 0 or "No available agent to submit job" not in submitted.stderr:
+        if (
+            submitted.returncode == 0
+            or "No available agent to submit job" not in submitted.stderr
+            or time.monotonic() > agent_deadline
+        ):
             break
         time.sleep(3)
     assert submitted.returncode == 0, submitted.stdout + submitted.stderr

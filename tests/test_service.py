@@ -92,8 +92,8 @@ def test_a_solve_job_from_request_to_files(server):
         for line in stream.iter_lines():
             if line.startswith(b"data: "):
                 states.append(json.loads(line[6:])["state"])
-    assert states[-1] == "done" and len(states) >= 2, states
     done = server.get(f"/api/jobs/{job['id']}").json()
+    assert states[-1] == "done" and len(states) >= 2, (states, done.get("error"))
     labels = server.verified(done)
     assert labels.max() == 6
     puz = server.get(done["files"]["assembly.puz"])

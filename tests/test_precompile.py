@@ -1,0 +1,63 @@
+"""The install-time compile (`rllock.core.precompile`) covers what the commands then run: after it, the
+search (plain, deep, closed proposal, both removal modes, on threads), MCTS's candidates and tables that
+came through Ray (read-only) compile no new numba signature, so none of them compiles inside a time
+limit."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba.core.registry import CPUDispatcher
+
+from rllock.core import compiled_checkers, compiled_sampler, winding
+from rllock.core.env import candidates_many, initial_state, make_task, sample_accepted
+from rllock.core.precompile import _layouts, compile_all
+from rllock.search.solver import SearchConfig, solve
+
+
+def _signatures() -> set[tuple[str, str]]:
+    found = set()
+    for module in (compiled_checkers, compiled_sampler, winding):
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher):
+                found |= {(f"{module.__name__}.{name}", str(sig)) for sig in value.signatures}
+    return found
+
+
+def test_the_layouts_are_fortran_c_and_read_only_tables_of_the_same_shape():
+    task = make_task("cube4", 6)
+    built, contiguous, read_only = _layouts(task)
+    assert built is task and task.topology.coords.flags.f_contiguous
+    assert contiguous.topology.coords.flags.c_contiguous and not task.topology.coords.flags.c_contiguous
+    assert not any(a.flags.writeable for a in read_only.topology.arrays if isinstance(a, np.ndarray))
+    for variant in (contiguous, read_only):
+        for a, b in zip(task.topology.arrays, variant.topology.arrays):
+            assert np.array_equal(a, b)
+
+
+def test_after_the_precompile_the_search_mcts_and_ray_tables_compile_nothing_new():
+    compile_all()
+    before = _signatures()
+    # The entry points (their callees are compiled into them, and a cached entry loads without them).
+    entries = {
+        "rllock.core.compiled_sampler." + f
+        for f in (
+            "sample_and_check_mixed",
+            "candidates_many",
+            "candidates_serial",
+            "chunk_cuts",
+            "distinct_rows",
+        )
+    } | {"rllock.core.compiled_checkers.check_chunks", "rllock.core.winding._winding_many"}
+    assert entries <= {name for name, _ in before}
+    for removal in ("straight", "path"):
+        assert solve(make_task("cube4", 6, removal=removal), time_limit=30, seed=0)
+        # Deep mode (K >= 30: wide seeds, thin growth, smallest cuts) and the closed proposal (n >= 32).
+        solve(make_task("box:4x4x8", 30, removal=removal), time_limit=0.5, seed=0)
+        solve(make_task("box:8x8x8", 8, removal=removal), time_limit=0.5, seed=0, threads=2)
+    task = make_task("ring", 15)
+    states = [initial_state(task)] * 2
+    candidates_many(task, states, np.arange(2), num_samples=16, max_candidates=4)
+    frozen = _layouts(task)[2]  # as a Ray actor receives it
+    sample_accepted(frozen, initial_state(frozen), seed=1, num_samples=16, closed_share=0.5)
+    solve(frozen, time_limit=0.5, seed=0, config=SearchConfig(deep_from=2))
+    assert _signatures() - before == set()
