@@ -33,22 +33,19 @@ log = logging.getLogger(__name__)
 
 
 def _layouts(task: Task) -> list[Task]:
-    """`task` with its tables as the processes that search meet them: as built (`coords` in Fortran
-    order, from `np.argwhere`), C-contiguous (copies made elsewhere), and read-only (arrays that came
-    through Ray's object store). Each layout is a type signature of its own to numba."""
-    topology = task.topology
+    """`task` with its tables as built and read-only (as they come through Ray's object store to an
+    actor): each layout is a type signature of its own to numba."""
 
     def frozen(array: np.ndarray) -> np.ndarray:
-        array = array.copy(order="K")
+        array = array.copy()
         array.flags.writeable = False
         return array
 
+    topology = task.topology
     tables: dict[str, Any] = {
         f.name: frozen(v) for f in fields(topology) if isinstance(v := getattr(topology, f.name), np.ndarray)
     }
-    contiguous = replace(topology, coords=np.ascontiguousarray(topology.coords))
-    read_only = replace(topology, **tables)
-    return [task, replace(task, topology=contiguous), replace(task, topology=read_only)]
+    return [task, replace(task, topology=replace(topology, **tables))]
 
 
 def compile_all() -> float:

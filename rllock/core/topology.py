@@ -48,7 +48,9 @@ class Topology:
 def build_topology(grid: np.ndarray) -> Topology:
     grid = np.asarray(grid, dtype=bool)
     dims = np.array(grid.shape)
-    coords = np.argwhere(grid).astype(np.int32)
+    # C order: np.argwhere gives Fortran order, and the threads' copies (`SamplingPool.own`) C order,
+    # each a numba signature of its own to compile.
+    coords = np.ascontiguousarray(np.argwhere(grid), dtype=np.int32)
     index = np.full(grid.shape, -1, dtype=np.int32)
     index[tuple(coords.T)] = np.arange(len(coords), dtype=np.int32)
     nbr = np.full((len(coords), 6), -1, dtype=np.int32)
