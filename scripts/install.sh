@@ -15,6 +15,6 @@ if [ ! -x .venv/bin/python ] || [ "$(cat .venv/.install-stamp 2>/dev/null)" != "
   .venv/bin/python -m pip install --quiet --no-deps -e .
   echo "$stamp_value" > .venv/.install-stamp
 fi
-# Compile the sampler and checkers into numba's cache now (35-40 s on a cold cache, a few seconds when
-# warm), not inside the first command's time limit (rllock/core/precompile.py).
+# Compile the sampler and checkers into numba's cache now (about two minutes on a cold cache on 2 cores,
+# a few seconds when warm), not inside the first command's time limit (rllock/core/precompile.py).
 .venv/bin/python -m rllock.core.precompile
