@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import socket
 import time
 import zipfile
 from pathlib import Path
@@ -42,6 +43,20 @@ def server(tmp_path_factory):
         yield server
     finally:
         server.stop()
+
+
+def test_free_ports_are_free_and_below_the_ones_port_0_binds_get():
+    from orchestration.bench.serve import _ephemeral_low, free_port
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ephemeral = s.getsockname()[1]
+    assert ephemeral >= _ephemeral_low()
+    ports = {free_port() for _ in range(20)}
+    assert len(ports) > 1 and all(10_000 <= p < _ephemeral_low() for p in ports)
+    for port in ports:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", port))  # free: binding it again here succeeds
 
 
 def _box_stl(extents=(3.0, 2.0, 1.5)) -> bytes:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -29,9 +30,29 @@ FINAL = ("done", "failed", "cancelled")
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback port free now, below the range the OS hands out to port-0 binds and outgoing
+    connections: a port from that range (as binding port 0 gives) was taken by one of Ray's own
+    processes, which bind port 0, before the server bound it ("Failed to bind", seen under load)."""
+    low = _ephemeral_low()
+    low = low if low > 10_000 else 32768
+    draw = random.SystemRandom()
+    for _ in range(100):
+        port = draw.randrange(10_000, low)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RLLockError(f"no free loopback port found between 10000 and {low}")
+
+
+def _ephemeral_low() -> int:
+    """The low end of Linux's ephemeral port range (32768 where it cannot be read)."""
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
 
 
 class ServerProcess:
