@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from rllock.core import compiled_checkers as checkers
+from rllock.core.compiled_sampler import distinct_rows
 from rllock.core.env import State, Task, apply_chunk, make_task, sample_accepted
 from rllock.search.solver import SearchStats, search
 
@@ -109,7 +110,7 @@ def main() -> None:
         enumerated,
         task.piece_size,
         len(accepted),
-        len({row.tobytes() for row in np.sort(drawn, axis=1)}),
+        len(distinct_rows(drawn)),
         args.samples,
     )
     for d in range(deepest.placed, -1, -1):

@@ -15,10 +15,9 @@ of the time.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import numpy as np
@@ -36,12 +35,11 @@ class PolicyOrder:
     """Quacks like `rllock.search.guide.Guide` for the solver: `values` of a node's children are the
     sigmoid of the U-Net policy's chunk logit on their parent (the mean logit of the chunk's voxels)."""
 
-    task: Task
     canvas: int
     task_planes: bool
     apply: object
+    where: np.ndarray  # each shape voxel's canvas index (`canvas_index`)
     horizon: int = 1 << 30
-    calls: int = 0
     seconds: float = 0.0
 
     def values(self, task: Task, states: list[State], shares: list[float]) -> np.ndarray:
@@ -52,10 +50,8 @@ class PolicyOrder:
         start = time.perf_counter()
         planes = encode_batch(task, parent[None], np.array([piece - 1]), self.canvas, self.task_planes)
         logits = np.asarray(self.apply(planes)[0])[0]  # type: ignore[operator]
-        self.calls += 1
         self.seconds += time.perf_counter() - start
-        where = canvas_index(task, self.canvas)
-        scores = np.array([logits[where[s.labels == piece]].mean() for s in states])
+        scores = np.array([logits[self.where[s.labels == piece]].mean() for s in states])
         return 1 / (1 + np.exp(-scores))
 
 
@@ -73,11 +69,10 @@ def main() -> None:
     guide = None
     if not args.plain:
         _, net, params = load_network(args.checkpoint)
-        net = fit_canvas(task, dataclasses.replace(net, canvas=None))  # the smallest canvas that fits
+        net = fit_canvas(task, replace(net, canvas=None))  # the smallest canvas that fits
         model = PolicyValueNet(net)
-        guide = PolicyOrder(
-            task, net.canvas_side(), net.task_planes, jax.jit(lambda x: model.apply({"params": params}, x))
-        )
+        apply = jax.jit(lambda x: model.apply({"params": params}, x))
+        guide = PolicyOrder(net.canvas_side(), net.task_planes, apply, canvas_index(task, net.canvas_side()))
     config = SearchConfig(guide_count_weight=0.0, prune_below=0.0)
     for seed in (int(s) for s in args.seeds.split(",")):
         stats = SearchStats()
@@ -98,7 +93,7 @@ def main() -> None:
             net_seconds,
         )
         if guide is not None:
-            guide.calls, guide.seconds = 0, 0.0
+            guide.seconds = 0.0
 
 
 if __name__ == "__main__":
