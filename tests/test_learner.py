@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import shutil
+import threading
 
 import jax
 import numpy as np
@@ -87,6 +88,36 @@ def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episo
     assert np.array_equal(policy.task.topology.grid, task.topology.grid)
     for a, b in zip(jax.tree_util.tree_leaves(policy.params), jax.tree_util.tree_leaves(learner.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_saving_a_step_again_replaces_it_and_never_leaves_the_folder_without_it(tmp_path, task_and_episodes):
+    """A periodic checkpoint while the learner waits (no new step) saves the same step again."""
+    task, _ = task_and_episodes
+    learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5))
+    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
+    folder = tmp_path / "run" / "checkpoints"
+    mngr = orbax_io.manager(folder, keep=3)
+    orbax_io.save(mngr, 0, learner.state(), ckpt.Metadata.of(config, task, 0).to_json())
+    seen: list[list[int]] = []
+    stop = threading.Event()
+
+    def poll() -> None:
+        while not stop.is_set():
+            seen.append(ckpt.saved_steps(folder))
+
+    poller = threading.Thread(target=poll)
+    poller.start()
+    try:
+        for counters in ({"episodes": 1}, {"episodes": 2}):
+            meta = ckpt.Metadata.of(config, task, 0, counters=counters).to_json()
+            orbax_io.save(mngr, 0, learner.state(), meta)
+    finally:
+        stop.set()
+        poller.join()
+    assert len(seen) > 10 and all(steps == [0] for steps in seen), {tuple(s) for s in seen}
+    assert mngr.all_steps() == [0] and sorted(p.name for p in folder.parent.iterdir()) == ["checkpoints"]
+    assert ckpt.read_metadata(folder / "0").counters == {"episodes": 2}
+    mngr.close()
 
 
 def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and_episodes):

@@ -16,14 +16,15 @@ import pytest
 from helpers import actor_nodes, tiny_flags
 
 from rllock.config import SelfPlayConfig
+from rllock.files.checkpoint import saved_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
 
 
-def _steps(logdir: Path) -> list[int]:
-    folder = logdir / "checkpoints"
-    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.exists() else []
+def _latest(logdir: Path) -> int:
+    """The newest saved learner step, -1 before the first."""
+    return max(saved_steps(logdir / "checkpoints"), default=-1)
 
 
 def _wait_for(what: str, condition: Callable[[], object], timeout: float, logs: Callable[[], str]):
@@ -93,26 +94,26 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
     )
     # The actors' first episodes wait for their compiled search: on a slow, busy machine (a 2-core VM
     # while the other test worker compiles too) that took more than 100 s.
-    _wait_for("a learner step", lambda: _steps(logdir), 240, logs)
+    _wait_for("a learner step", lambda: _latest(logdir) >= 0, 240, logs)
 
     # A worker node dies (SIGKILL to its processes): the learner keeps stepping on the other.
     ray_cluster.remove_node(workers[1], allow_graceful=False)
     lost = f"node {workers[1].node_id[:8]} (127.0.0.1) was lost"
     _wait_for("the run to notice the lost node", lambda: lost in logs(), 90, logs)
-    noticed = _steps(logdir)[-1]
-    _wait_for("learner steps after the node loss", lambda: _steps(logdir)[-1] >= noticed + 10, 90, logs)
+    noticed = _latest(logdir)
+    _wait_for("learner steps after the node loss", lambda: _latest(logdir) >= noticed + 10, 90, logs)
 
     # A node joins: the actor that lost its node restarts there.
     joined = add_worker()
     _wait_for("the actor restarted on the new node", lambda: joined.node_id in actor_nodes(api), 60, logs)
 
     # `ray job stop`: SIGTERM, a checkpoint at the signal, the resume command.
-    before = _steps(logdir)[-1]
+    before = _latest(logdir)
     stopped = _run([RAY, "job", "stop", "--address", api, job])
     assert stopped.returncode == 0, stopped.stdout + stopped.stderr
     assert client.get_job_status(job) == JobStatus.STOPPED
     text = logs()
     assert "SIGTERM: saving a checkpoint" in text and "Traceback" not in text
     step = int(text.split("stopped by SIGTERM at learner step ")[1].split(";")[0])
-    assert step >= before and _steps(logdir)[-1] == step
+    assert step >= before and _latest(logdir) == step
     assert (logdir / "replay.npz").exists() and list(logdir.glob("events.out.tfevents.*"))

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 import re
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,9 +27,32 @@ def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> None:
-    """Save (replacing an earlier save of the same step, whose metadata may be stale) and wait."""
-    if step in mngr.all_steps():
-        mngr.delete(step)
+    """Save and wait; an earlier save of the same step (its metadata may be stale) is replaced.
+
+    The replacement is written beside the folder and swapped in, so that a process killed meanwhile
+    (or a reader polling the folder) never finds the step missing: deleting it first left a run whose
+    only checkpoint was that step with none for the whole save."""
+    if step not in mngr.all_steps():
+        _save(mngr, step, state, metadata)
+        return
+    folder = Path(mngr.directory)
+    staging = folder.parent / f".{folder.name}-{step}-staging"
+    shutil.rmtree(staging, ignore_errors=True)
+    writer = manager(staging, keep=1)
+    try:
+        _save(writer, step, state, metadata)
+    finally:
+        writer.close()
+    replaced = folder / f".{step}-replaced"
+    shutil.rmtree(replaced, ignore_errors=True)
+    (folder / str(step)).rename(replaced)
+    (staging / str(step)).rename(folder / str(step))
+    shutil.rmtree(replaced)
+    shutil.rmtree(staging)
+    mngr.reload()
+
+
+def _save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> None:
     mngr.save(
         step,
         args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(metadata)),
