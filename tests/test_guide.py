@@ -40,9 +40,8 @@ def _untrained(seed: int = 0) -> Guide:
     return Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(seed)), f"untrained ({seed})")
 
 
-def test_the_search_without_a_guide_is_the_solver_of_before_bit_for_bit():
-    """Assemblies, node expansions and restarts of the plain search on fixed seeds, hashed: the digest
-    was recorded from the solver before the guide existed (commit 8fc97c6)."""
+def _plain_digest(config: SearchConfig) -> str:
+    """Assemblies, node expansions and restarts of the plain search on fixed seeds, hashed."""
     digest = hashlib.sha256()
     for shape, k, removal, seed in [
         ("cube4", 7, "straight", 0),
@@ -51,15 +50,23 @@ def test_the_search_without_a_guide_is_the_solver_of_before_bit_for_bit():
         ("desia-dog", 30, "straight", 0),
     ]:
         stats = SearchStats()
-        for i, found in enumerate(
-            search(make_task(shape, k, removal), seed=seed, time_limit=120, stats=stats)
-        ):
+        task = make_task(shape, k, removal)
+        for i, found in enumerate(search(task, seed=seed, time_limit=120, stats=stats, config=config)):
             digest.update(found.labels.astype(np.int16).tobytes())
             digest.update(str(found.expansions).encode())
             if i == 1:
                 break
         digest.update(str((stats.expansions, stats.restarts)).encode())
-    assert digest.hexdigest() == "b1bc94138f0585e14f9f8ebdea37be3dfe84b9ae04750554810ccda9b1498bed"
+    return digest.hexdigest()
+
+
+def test_the_search_without_a_guide_is_the_solver_of_before_bit_for_bit():
+    """The digest of deep mode from K = 30 was recorded from the solver before the guide existed (commit
+    8fc97c6); the default's (deep mode at every K) when that became the default (commit after 63fd666)."""
+    assert _plain_digest(SearchConfig(deep_from=30)) == (
+        "b1bc94138f0585e14f9f8ebdea37be3dfe84b9ae04750554810ccda9b1498bed"
+    )
+    assert _plain_digest(SearchConfig()) == "71ab68ab1bf577bb3efdbcf51a06f175b7312d22478e4218885f896d5f177039"
 
 
 def _reference_window(task, state, w):

@@ -7,9 +7,9 @@ a budget of node expansions that follows the Luby sequence (1, 1, 2, 1, 1, 2, 4,
 `restart_base`: short runs most of the time, occasionally long ones, which is within a log factor of
 the best fixed budget without knowing it.
 
-Deep searches (many small pieces, `SearchConfig.deep_from`) fail late, when what remains of the shape
-has thinned into strands; in deep mode the search keeps the remaining volume compact (wide seeds, thin
-growth, children with the smallest cut) and restarts less often.
+Searches fail late, when what remains of the shape has thinned into strands; in deep mode (the
+default at every K, `SearchConfig.deep_from`) the search keeps the remaining volume compact (wide
+seeds, thin growth, children with the smallest cut) and restarts less often.
 """
 
 from __future__ import annotations
@@ -66,15 +66,19 @@ class SearchConfig:
     """The piece size n from which `closed_share=None` draws closed-proposal chunks."""
     closed_only_from: int = 32
     """The piece size n from which `closed_share=None` draws closed-proposal chunks only."""
-    deep_from: int = 30
-    """From this K on, the search runs in deep mode, which keeps the remaining volume compact: many
-    small pieces fail late, when what remains of R has become thin strands that no piece can be cut
-    from without cutting R apart. In deep mode a chunk may start at any R voxel that touches a placed
-    piece (not only the previous piece: stragglers get picked up), frontier growth takes the thinner of
-    two frontier voxels, a node's children are its accepted chunks with the smallest cut to the rest of
-    R (`env.tightest_subset`), and restarts are longer. Measured on desia-dog K=60 (seed 0, one core):
-    the default search reached 55 of 59 pieces in 300 s; the smallest cuts, 55; with wide seeds, 57;
-    with thin growth too, 58 in 240 s; with longer restarts too, all 59 in 111 s."""
+    deep_from: int = 2
+    """From this K on, the search runs in deep mode, which keeps the remaining volume compact: pieces
+    fail late, when what remains of R has become thin strands that no piece can be cut from without
+    cutting R apart. In deep mode a chunk may start at any R voxel that touches a placed piece (not only
+    the previous piece: stragglers get picked up), frontier growth takes the thinner of two frontier
+    voxels, a node's children are its accepted chunks with the smallest cut to the rest of R
+    (`env.tightest_subset`), and restarts are longer. Measured first on desia-dog K=60 (seed 0, one
+    core): the default search reached 55 of 59 pieces in 300 s; the smallest cuts, 55; with wide seeds,
+    57; with thin growth too, 58 in 240 s; with longer restarts too, all 59 in 111 s. It was the mode
+    from K = 30 on until it was measured at small K too (docs/benchmarks.md, "Deep mode at every K"):
+    seconds to the first assembly, seeds 0-2, fell on every cell tried (cube6 K=25 2.7-31 s to
+    0.3-1.1 s, cube4 K=9 none in 60 s to 1.5-3.2 s) and sofa K=19, which no search of the solver had
+    solved, was solved in 37-149 s. So it is the default at every K; `deep_from` stays to compare."""
     deep_restart_per_piece: int = 16
     """`restart_per_piece` in deep mode."""
     lookahead: bool = True
