@@ -11,7 +11,7 @@ from numba.core.registry import CPUDispatcher
 from rllock.core import compiled_checkers, compiled_sampler, winding
 from rllock.core.env import candidates_many, initial_state, make_task, sample_accepted
 from rllock.core.precompile import _layouts, compile_all
-from rllock.search.solver import SearchConfig, solve
+from rllock.search.solver import solve
 
 
 def _signatures() -> set[tuple[str, str]]:
@@ -51,7 +51,7 @@ def test_after_the_precompile_the_search_mcts_and_ray_tables_compile_nothing_new
     assert entries <= {name for name, _ in before}
     for removal in ("straight", "path"):
         assert solve(make_task("cube4", 6, removal=removal), time_limit=30, seed=0)
-        # Deep mode (K >= 30: wide seeds, thin growth, smallest cuts) and the closed proposal (n >= 32).
+        # Deep mode (the default: wide seeds, thin growth, smallest cuts) and the closed proposal (n >= 32).
         solve(make_task("box:4x4x8", 30, removal=removal), time_limit=0.5, seed=0)
         solve(make_task("box:8x8x8", 8, removal=removal), time_limit=0.5, seed=0, threads=2)
     task = make_task("ring", 15)
@@ -59,5 +59,5 @@ def test_after_the_precompile_the_search_mcts_and_ray_tables_compile_nothing_new
     candidates_many(task, states, np.arange(2), num_samples=16, max_candidates=4)
     frozen = _layouts(task)[1]  # as a Ray actor receives it
     sample_accepted(frozen, initial_state(frozen), seed=1, num_samples=16, closed_share=0.5)
-    solve(frozen, time_limit=0.5, seed=0, config=SearchConfig(deep_from=2))
+    solve(frozen, time_limit=0.5, seed=0)
     assert _signatures() - before == set()
