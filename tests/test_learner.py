@@ -120,6 +120,19 @@ def test_saving_a_step_again_replaces_it_and_never_leaves_the_folder_without_it(
     mngr.close()
 
 
+@pytest.mark.parametrize("atomic", [True, False])
+def test_exchange_swaps_two_folders_with_or_without_renameat2(tmp_path, monkeypatch, atomic):
+    if not atomic:
+        monkeypatch.setattr(orbax_io.ctypes, "CDLL", lambda *args, **kwargs: object())
+    a, b = tmp_path / "staging" / "3", tmp_path / "checkpoints" / "3"
+    for folder, text in ((a, "new"), (b, "old")):
+        folder.mkdir(parents=True)
+        (folder / "f").write_text(text)
+    orbax_io._exchange(a, b)
+    assert (b / "f").read_text() == "new" and (a / "f").read_text() == "old"
+    assert sorted(p.name for p in b.parent.iterdir()) == ["3"]
+
+
 def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and_episodes):
     task, _ = task_and_episodes
     run = _save(tmp_path, task, Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5)))

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
+import errno
 import logging
 import re
 import shutil
@@ -29,9 +31,10 @@ def manager(directory: Path, keep: int) -> ocp.CheckpointManager:
 def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> None:
     """Save and wait; an earlier save of the same step (its metadata may be stale) is replaced.
 
-    The replacement is written beside the folder and swapped in, so that a process killed meanwhile
-    (or a reader polling the folder) never finds the step missing: deleting it first left a run whose
-    only checkpoint was that step with none for the whole save."""
+    The replacement is written beside the folder and exchanged with the old step in one rename, so
+    that a process killed meanwhile (or a reader polling the folder) never finds the step missing:
+    deleting it first left a run whose only checkpoint was that step with none for the whole save, and
+    two renames (old away, new in) still left a moment without it."""
     if step not in mngr.all_steps():
         _save(mngr, step, state, metadata)
         return
@@ -43,13 +46,29 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> 
         _save(writer, step, state, metadata)
     finally:
         writer.close()
-    replaced = folder / f".{step}-replaced"
-    shutil.rmtree(replaced, ignore_errors=True)
-    (folder / str(step)).rename(replaced)
-    (staging / str(step)).rename(folder / str(step))
-    shutil.rmtree(replaced)
+    _exchange(staging / str(step), folder / str(step))
     shutil.rmtree(staging)
     mngr.reload()
+
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(a: Path, b: Path) -> None:
+    """Swap two directories atomically (Linux renameat2); where the system cannot, `b` is moved aside
+    and `a` put in its place, and `a` then holds the old `b` either way."""
+    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+    if renameat2 is not None:
+        if renameat2(_AT_FDCWD, bytes(a), _AT_FDCWD, bytes(b), _RENAME_EXCHANGE) == 0:
+            return
+        if ctypes.get_errno() not in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+            raise OSError(ctypes.get_errno(), f"cannot exchange {a} and {b}")
+    aside = b.with_name(f".{b.name}-replaced")
+    shutil.rmtree(aside, ignore_errors=True)
+    b.rename(aside)
+    a.rename(b)
+    aside.rename(a)
 
 
 def _save(mngr: ocp.CheckpointManager, step: int, state: Any, metadata: dict) -> None:
