@@ -1,15 +1,19 @@
-"""Deep mode at every K against deep mode from K = 30 (the former default), side by side in one process.
+"""Variants of the search solver side by side in one process: the same cells and seeds, one arm after the
+other per seed, one core.
 
-The search solver's deep mode (wide seeds, thin growth, children with the smallest cut, longer restarts;
-`SearchConfig.deep_from`) was the default from K = 30 on. Here both thresholds run on the same cells and
-seeds, one after the other per seed, one core:
+The arms (`ARMS`): `from30`, deep mode from K = 30 with the smallest cuts (the default until 7162aef);
+`cut`, deep mode at every K with the smallest cuts (until the remainder's surface; still the default
+under path removal); `surface`, the remainder's surface; `default`, `SearchConfig()` (surface under
+straight removal, cut under path removal: `SearchConfig.remainder`).
 
-    python scripts/deep_mode.py sofa:19,cube4:9,cube6:25,ring:15 --time-limit 120
-    python scripts/deep_mode.py spider:20,cube4:8,box:6x5x4:12:path --time-limit 120
+    python scripts/solver_arms.py sofa:19,cube4:9,cube6:25,ring:15 --arms from30,cut --time-limit 120
+    python scripts/solver_arms.py sofa:19,mario:60 --arms cut,surface --time-limit 60
+    python scripts/solver_arms.py spot.obj@24:163 --arms cut,surface   # a mesh at resolution 24
 
-A cell is SHAPE:K or SHAPE:K:path. Prints a markdown row per cell: seconds to the first valid assembly
-per seed (or `none (p/K-1)`: the most pieces placed), and the ratio of the medians (an unsolved seed
-counts at the limit).
+A cell is SHAPE:K or SHAPE:K:path, SHAPE a shape's name or a file, `@R` after it a mesh's resolution.
+Prints a markdown row per cell: seconds to the first valid assembly per seed (or `none (p/K-1)`: the
+most pieces placed), and the ratio of the last arm's median to the first's (an unsolved seed counts at
+the limit).
 """
 
 from __future__ import annotations
@@ -19,23 +23,27 @@ import logging
 import statistics
 import time
 
-from rllock.core.env import make_task
+from rllock.core.env import Task, make_task
 from rllock.core.verifier import verify_labels
 from rllock.search.solver import SearchConfig, SearchStats, search
 
-log = logging.getLogger("deep_mode")
+log = logging.getLogger("solver_arms")
 
-ARMS = {"deep from K = 30": SearchConfig(deep_from=30), "deep at every K": SearchConfig(deep_from=2)}
+ARMS = {
+    "from30": SearchConfig(deep_from=30, remainder="cut"),
+    "cut": SearchConfig(remainder="cut"),
+    "surface": SearchConfig(remainder="surface"),
+    "default": SearchConfig(),
+}
 
 
-def first_assembly(shape: str, k: int, removal: str, seed: int, limit: float, config: SearchConfig):
+def first_assembly(task: Task, seed: int, limit: float, config: SearchConfig) -> tuple[float | None, int]:
     """(seconds or None, pieces placed at best) of one search, its assembly checked by the verifier."""
-    task = make_task(shape, k, removal)
     stats = SearchStats()
     start = time.monotonic()
     found = next(search(task, seed=seed, time_limit=limit, config=config, stats=stats), None)
     seconds = time.monotonic() - start
-    if found is not None and not verify_labels(found.labels, removal).valid:
+    if found is not None and not verify_labels(found.labels, task.removal).valid:
         raise AssertionError("the search returned an assembly the verifier rejects")
     return (None if found is None else seconds), stats.placed
 
@@ -43,31 +51,33 @@ def first_assembly(shape: str, k: int, removal: str, seed: int, limit: float, co
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("cells", help="comma-separated SHAPE:K or SHAPE:K:path")
+    p.add_argument("--arms", default="cut,surface", help=f"comma-separated, of {', '.join(ARMS)}")
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--time-limit", type=float, default=120.0)
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", force=True)
     seeds = [int(s) for s in args.seeds.split(",")]
-    print(f"| cell | {' | '.join(ARMS)} | ratio of the medians |")
-    print("|---|" + "---|" * (len(ARMS) + 1))
+    arms = {name: ARMS[name] for name in args.arms.split(",")}
+    print(f"| cell | {' | '.join(arms)} | ratio of the medians |")
+    print("|---|" + "---|" * (len(arms) + 1))
     for cell in args.cells.split(","):
         parts = cell.split(":")
         removal = parts.pop() if parts[-1] in ("straight", "path") else "straight"
         k = parts.pop()
-        shape = ":".join(parts)  # box:AxBxC holds a colon
-        texts: dict[str, list[str]] = {arm: [] for arm in ARMS}
-        medians: dict[str, list[float]] = {arm: [] for arm in ARMS}
+        shape, _, resolution = ":".join(parts).partition("@")  # box:AxBxC holds a colon
+        task = make_task(shape, int(k), removal, resolution=int(resolution) if resolution else None)
+        texts: dict[str, list[str]] = {arm: [] for arm in arms}
+        medians: dict[str, list[float]] = {arm: [] for arm in arms}
         for seed in seeds:
-            for arm, config in ARMS.items():
-                seconds, placed = first_assembly(shape, int(k), removal, seed, args.time_limit, config)
+            for arm, config in arms.items():
+                seconds, placed = first_assembly(task, seed, args.time_limit, config)
                 text = f"none ({placed}/{int(k) - 1})" if seconds is None else f"{seconds:.1f}"
                 log.info("%s seed %d, %s: %s", cell, seed, arm, text)
                 texts[arm].append(text)
                 medians[arm].append(args.time_limit if seconds is None else seconds)
-        m = {arm: statistics.median(v) for arm, v in medians.items()}
-        old, new = m.values()
-        cols = " | ".join(f"{', '.join(texts[a])}; {m[a]:.1f}" for a in ARMS)
-        print(f"| {cell} | {cols} | {new / old:.2f} |", flush=True)
+        m = [statistics.median(v) for v in medians.values()]
+        cols = " | ".join(f"{', '.join(texts[a])}; {median:.1f}" for a, median in zip(arms, m, strict=True))
+        print(f"| {cell} | {cols} | {m[-1] / m[0]:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

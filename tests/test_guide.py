@@ -62,11 +62,20 @@ def _plain_digest(config: SearchConfig) -> str:
 
 def test_the_search_without_a_guide_is_the_solver_of_before_bit_for_bit():
     """The digest of deep mode from K = 30 was recorded from the solver before the guide existed (commit
-    8fc97c6); the default's (deep mode at every K) when that became the default (commit after 63fd666)."""
-    assert _plain_digest(SearchConfig(deep_from=30)) == (
+    8fc97c6); deep mode at every K's (the smallest cuts) when that became the default (the commit after
+    63fd666); the remainder's surface's when it became the default under straight removal (the commit
+    after ee1390c), and the default's then (the surface on the three straight tasks, the cut on the
+    path task)."""
+    assert _plain_digest(SearchConfig(deep_from=30, remainder="cut")) == (
         "b1bc94138f0585e14f9f8ebdea37be3dfe84b9ae04750554810ccda9b1498bed"
     )
-    assert _plain_digest(SearchConfig()) == "71ab68ab1bf577bb3efdbcf51a06f175b7312d22478e4218885f896d5f177039"
+    assert _plain_digest(SearchConfig(remainder="cut")) == (
+        "71ab68ab1bf577bb3efdbcf51a06f175b7312d22478e4218885f896d5f177039"
+    )
+    assert _plain_digest(SearchConfig(remainder="surface")) == (
+        "5a5edf98c1561c9d9d24935a82007a3b180f8b44cf558a437807c62471a0d468"
+    )
+    assert _plain_digest(SearchConfig()) == "6e7dea6b029989af32131340ede9cd0723efd1a5ca1e370e29499bfd318b1776"
 
 
 def _reference_window(task, state, w):

@@ -156,8 +156,10 @@ def test_closed_proposal_solves_a_task_frontier_growth_misses():
     assert verify_labels(labels, "straight").valid
 
 
-def test_chunk_cuts_count_the_faces_a_chunk_shares_with_the_rest_of_the_remaining_volume():
-    """Against a brute force over voxel coordinates, on random states and raw chunks of several shapes."""
+def test_remainder_growth_is_the_cut_or_the_change_of_the_remaining_volumes_surface():
+    """Against a brute force over voxel coordinates, on random states and raw chunks of several shapes:
+    with `outside` 0 the faces a chunk shares with the rest of R; with 1, how much R's surface (its
+    faces to anything not in R) grows when the chunk leaves it."""
     checked = 0
     for shape, k in [("cube5", 6), ("ring", 8), ("desia-dog", 40)]:
         task = make_task(shape, k)
@@ -172,9 +174,11 @@ def test_chunk_cuts_count_the_faces_a_chunk_shares_with_the_rest_of_the_remainin
                 20,
                 int(rng.integers(1 << 30)),
             )
-            cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, raw)
+            nbr = task.topology.arrays[0]
+            cuts = sampler.remainder_growth(nbr, state.labels, raw, 0)
+            growths = sampler.remainder_growth(nbr, state.labels, raw, 1)
             rest = {coords[v] for v in np.flatnonzero(state.labels == 0)}
-            for chunk, cut in zip(raw, cuts):
+            for chunk, cut, growth in zip(raw, cuts, growths):
                 piece = {coords[v] for v in chunk}
                 faces = sum(
                     (x + dx, y + dy, z + dz) in rest - piece
@@ -182,24 +186,39 @@ def test_chunk_cuts_count_the_faces_a_chunk_shares_with_the_rest_of_the_remainin
                     for dx, dy, dz in ref.DIRECTIONS
                 )
                 assert cut == faces
+                assert growth == _surface(rest - piece) - _surface(rest)
                 checked += 1
     assert checked >= 100
 
 
-def test_tightest_children_are_distinct_accepted_chunks_with_the_smallest_cuts():
+def _surface(voxels: set) -> int:
+    return sum((x + dx, y + dy, z + dz) not in voxels for x, y, z in voxels for dx, dy, dz in ref.DIRECTIONS)
+
+
+def test_tightest_children_are_distinct_accepted_chunks_with_the_least_growth_or_cut():
     task = make_task("desia-dog", 40)
     rng = np.random.default_rng(2)
     for state in itertools.islice(random_valid_states(task, rng, 1), 0, 20, 5):
         accepted = sample_accepted(task, state, seed=int(rng.integers(1 << 30)), num_samples=400)
         if len(accepted) < 12:
             continue
-        kids = tightest_subset(task, state, accepted, 8, seed=3)
         unique = {tuple(sorted(c)) for c in accepted.tolist()}
-        assert len({tuple(c) for c in kids.tolist()}) == len(kids) == min(8, len(unique))
-        assert {tuple(c) for c in kids.tolist()} <= unique
-        cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, np.array(sorted(unique), np.int32))
-        kid_cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, kids)
-        assert kid_cuts.max() <= np.sort(cuts)[len(kids) - 1]
+        every = np.array(sorted(unique), np.int32)
+        for surface in (False, True):
+            kids = tightest_subset(task, state, accepted, 8, seed=3, surface=surface)
+            assert len({tuple(c) for c in kids.tolist()}) == len(kids) == min(8, len(unique))
+            assert {tuple(c) for c in kids.tolist()} <= unique
+            growth = sampler.remainder_growth(task.topology.arrays[0], state.labels, every, int(surface))
+            kid_growth = sampler.remainder_growth(task.topology.arrays[0], state.labels, kids, int(surface))
+            assert kid_growth.max() <= np.sort(growth)[len(kids) - 1]
+
+
+def test_the_default_remainder_is_the_surface_under_straight_removal_and_the_cut_under_path_removal():
+    straight, path = make_task("cube4", 8), make_task("box:6x5x4", 12, "path")
+    assert SearchConfig().surface(straight) and not SearchConfig().surface(path)
+    assert SearchConfig(remainder="surface").surface(path) and not SearchConfig(remainder="cut").surface(
+        straight
+    )
 
 
 def _accepted_with(task, state, seed, **options):

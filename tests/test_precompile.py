@@ -44,14 +44,14 @@ def test_after_the_precompile_the_search_mcts_and_ray_tables_compile_nothing_new
             "sample_and_check_mixed",
             "candidates_many",
             "candidates_serial",
-            "chunk_cuts",
+            "remainder_growth",
             "distinct_rows",
         )
     } | {"rllock.core.compiled_checkers.check_chunks", "rllock.core.winding._winding_many"}
     assert entries <= {name for name, _ in before}
     for removal in ("straight", "path"):
         assert solve(make_task("cube4", 6, removal=removal), time_limit=30, seed=0)
-        # Deep mode (the default: wide seeds, thin growth, smallest cuts) and the closed proposal (n >= 32).
+        # Deep mode (the default: wide seeds, thin growth, the remainder's surface), the closed proposal.
         solve(make_task("box:4x4x8", 30, removal=removal), time_limit=0.5, seed=0)
         solve(make_task("box:8x8x8", 8, removal=removal), time_limit=0.5, seed=0, threads=2)
     task = make_task("ring", 15)

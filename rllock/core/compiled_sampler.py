@@ -436,22 +436,25 @@ def candidates_serial(topo, labels, pieces, seeds, n, num_samples, max_candidate
 
 
 @njit(cache=True, nogil=True)
-def chunk_cuts(nbr, labels, chunks):
-    """int64[k]: for each chunk (a row of voxel numbers of R, labels 0), how many faces it shares with
-    the rest of R: what the remaining volume loses as surface when the chunk leaves it is this cut less
-    the chunk's own faces to the outside, so a small cut leaves a compact remainder."""
+def remainder_growth(nbr, labels, chunks, outside):
+    """int64[k]: for each chunk (a row of voxel numbers of R, labels 0), how much the remaining volume's
+    surface grows when the chunk leaves it: the faces the chunk shares with the rest of R (its cut), less
+    `outside` times its faces to placed pieces and to the outside of the shape, which R loses with it.
+    `outside` = 1 is the surface's change; 0, the cut alone. A small growth leaves a compact remainder."""
     mark = np.zeros(labels.shape[0], np.int64)
     out = np.zeros(chunks.shape[0], np.int64)
     for c in range(chunks.shape[0]):
         for j in range(chunks.shape[1]):
             mark[chunks[c, j]] = c + 1
-        cut = 0
+        growth = 0
         for j in range(chunks.shape[1]):
             for t in range(6):
                 u = nbr[chunks[c, j], t]
-                if u >= 0 and labels[u] == 0 and mark[u] != c + 1:
-                    cut += 1
-        out[c] = cut
+                if u < 0 or labels[u] != 0:
+                    growth -= outside
+                elif mark[u] != c + 1:
+                    growth += 1
+        out[c] = growth
     return out
 
 

@@ -188,10 +188,13 @@ def distinct_subset(accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
     return unique[np.random.default_rng(seed).permutation(len(unique))[:count]]
 
 
-def tightest_subset(task: Task, state: State, accepted: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """Up to `count` distinct chunks (as sorted voxel numbers) of `accepted`: those with the smallest cut
-    to the rest of the remaining volume (`compiled_sampler.chunk_cuts`), equal cuts in random order."""
+def tightest_subset(
+    task: Task, state: State, accepted: np.ndarray, count: int, seed: int, surface: bool = True
+) -> np.ndarray:
+    """Up to `count` distinct chunks (as sorted voxel numbers) of `accepted`: those after which the
+    remaining volume's surface grows least, or with `surface` False those with the smallest cut to the
+    rest of it (`compiled_sampler.remainder_growth`); ties in random order."""
     unique = sampler.distinct_rows(accepted)
-    cuts = sampler.chunk_cuts(task.topology.arrays[0], state.labels, unique)
-    order = np.lexsort((np.random.default_rng(seed).random(len(unique)), cuts))
+    growth = sampler.remainder_growth(task.topology.arrays[0], state.labels, unique, int(surface))
+    order = np.lexsort((np.random.default_rng(seed).random(len(unique)), growth))
     return unique[order[:count]]

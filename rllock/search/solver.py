@@ -9,7 +9,8 @@ the best fixed budget without knowing it.
 
 Searches fail late, when what remains of the shape has thinned into strands; in deep mode (the
 default at every K, `SearchConfig.deep_from`) the search keeps the remaining volume compact (wide
-seeds, thin growth, children with the smallest cut) and restarts less often.
+seeds, thin growth, children after which the remainder's surface grows least, or under path removal with
+the smallest cut) and restarts less often.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import time
 from collections.abc import Callable, Generator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -71,8 +72,8 @@ class SearchConfig:
     fail late, when what remains of R has become thin strands that no piece can be cut from without
     cutting R apart. In deep mode a chunk may start at any R voxel that touches a placed piece (not only
     the previous piece: stragglers get picked up), frontier growth takes the thinner of two frontier
-    voxels, a node's children are its accepted chunks with the smallest cut to the rest of R
-    (`env.tightest_subset`), and restarts are longer. Measured first on desia-dog K=60 (seed 0, one
+    voxels, a node's children are its accepted chunks that leave R most compact (`remainder`,
+    `env.tightest_subset`), and restarts are longer. Measured first on desia-dog K=60 (seed 0, one
     core): the default search reached 55 of 59 pieces in 300 s; the smallest cuts, 55; with wide seeds,
     57; with thin growth too, 58 in 240 s; with longer restarts too, all 59 in 111 s. It was the mode
     from K = 30 on until it was measured at small K too (docs/benchmarks.md, "Deep mode at every K"):
@@ -81,6 +82,15 @@ class SearchConfig:
     solved, was solved in 37-149 s. So it is the default at every K; `deep_from` stays to compare."""
     deep_restart_per_piece: int = 16
     """`restart_per_piece` in deep mode."""
+    remainder: Literal["surface", "cut"] | None = None
+    """Deep mode's judgement of a child's remainder: "surface" keeps the accepted chunks after which the
+    remaining volume's surface grows least (the chunk's cut to the rest, less its faces to placed pieces
+    and the outside: a chunk that takes a strand or a corner away is preferred, since a strand left to
+    the end is what no last piece can lock); "cut" those with the smallest cut alone. None: by removal
+    mode, "surface" under straight removal (sofa K=19 median 5.7 s to the first assembly against 60 s
+    unsolved, cube4 K=9 0.1 s against 3.3 s), "cut" under path removal (desia-bunny K=80, seeds 0-5,
+    120 s: cut solved 4, surface 2). Measured side by side (docs/benchmarks.md, "The remainder's
+    surface")."""
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
@@ -103,6 +113,12 @@ class SearchConfig:
 
     def deep(self, task: Task) -> bool:
         return task.pieces >= self.deep_from
+
+    def surface(self, task: Task) -> bool:
+        """Whether deep mode keeps the children that grow the remainder's surface least (`remainder`)."""
+        if self.remainder is not None:
+            return self.remainder == "surface"
+        return task.removal == "straight"
 
     def restart_unit(self, task: Task, placed: int) -> int:
         """Node expansions per unit of the Luby schedule for a search of `task` to `placed` pieces."""
@@ -348,7 +364,8 @@ class _Expander:
         if self.pool is not None:
             self.pool.took(time.thread_time() - started, began)
         if deep and len(accepted):
-            return tightest_subset(task, state, accepted, config.children, seed), len(accepted)
+            surface = config.surface(task)
+            return tightest_subset(task, state, accepted, config.children, seed, surface), len(accepted)
         return distinct_subset(accepted, config.children, seed), len(accepted)
 
     def children_of(self, state: State, chunks: np.ndarray) -> list[Child]:
