@@ -36,6 +36,7 @@ import optax
 from actors.guide_actor import label_children
 from learner.guide_learner import guide_step, siblings
 from rllock.config import GuideConfig, GuideTrainConfig
+from rllock.core.env import State, Task
 from rllock.search.curriculum import draw_task
 from rllock.search.guide import guide_values, init_guide
 from rllock.search.solver import reach_depth
@@ -48,6 +49,21 @@ def _append(rows: dict[str, list], **values) -> None:
         rows[key].append(value)
 
 
+def mid_node(
+    seed: int, number: int, config: GuideTrainConfig
+) -> tuple[Task, int, State, np.random.Generator] | None:
+    """Node `number` of a study seeded `seed`: a curriculum task of K >= 8, how many pieces are left
+    (4-16), a state the plain search reached with that many left, and the generator that drew them (for
+    the study's further draws); or None (K too small, no state within 5 s)."""
+    rng = np.random.default_rng([seed, number])
+    task = draw_task(rng, config)
+    if task.pieces < 8:
+        return None
+    left = int(rng.integers(4, min(16, task.pieces - 2) + 1))
+    state = reach_depth(task, task.pieces - 1 - left, seed=number, time_limit=5)
+    return None if state is None else (task, left, state, rng)
+
+
 def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: int) -> None:
     """Sibling groups labelled by rollouts: a mid-episode state 4-16 pieces before the end, its children
     as the solver makes them (lookahead share included) and labelled as `rllock train-guide` labels them
@@ -58,14 +74,10 @@ def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: in
     config = GuideTrainConfig(max_voxels=600, max_pieces=60)
     labels_config = dataclasses.replace(config, rollouts=rollouts_per, rollout_expansions=expansions)
     for g in range(groups):
-        rng = np.random.default_rng([seed, g])
-        task = draw_task(rng, config)
-        if task.pieces < 8:
+        node = mid_node(seed, g, config)
+        if node is None:
             continue
-        left = int(rng.integers(4, min(16, task.pieces - 2) + 1))
-        state = reach_depth(task, task.pieces - 1 - left, seed=g, time_limit=5)
-        if state is None:
-            continue
+        task, left, state, _ = node
         labelled = label_children(task, [state], labels_config, seed=g)
         if len(labelled.target) < 2:
             continue
