@@ -2,9 +2,11 @@
 other per seed, one core.
 
 The arms (`ARMS`): `from30`, deep mode from K = 30 with the smallest cuts (the default until 7162aef);
-`cut`, deep mode at every K with the smallest cuts (until the remainder's surface; still the default
-under path removal); `surface`, the remainder's surface; `default`, `SearchConfig()` (surface under
-straight removal, cut under path removal: `SearchConfig.remainder`).
+`cut`, deep mode at every K with the smallest cuts (until 6104197; still the judgement under path
+removal); `surface`, the remainder's surface; these three try a node's children by the lookahead's
+count; `count`, 6104197's default (the surface under straight removal, the cut under path removal,
+children by count); `default`, `SearchConfig()` (children in the order of the remainder's judgement:
+`SearchConfig.child_order`).
 
     python scripts/solver_arms.py sofa:19,cube4:9,cube6:25,ring:15 --arms from30,cut --time-limit 120
     python scripts/solver_arms.py sofa:19,mario:60 --arms cut,surface --time-limit 60
@@ -30,9 +32,10 @@ from rllock.search.solver import SearchConfig, SearchStats, search
 log = logging.getLogger("solver_arms")
 
 ARMS = {
-    "from30": SearchConfig(deep_from=30, remainder="cut"),
-    "cut": SearchConfig(remainder="cut"),
-    "surface": SearchConfig(remainder="surface"),
+    "from30": SearchConfig(deep_from=30, remainder="cut", child_order="count"),
+    "cut": SearchConfig(remainder="cut", child_order="count"),
+    "surface": SearchConfig(remainder="surface", child_order="count"),
+    "count": SearchConfig(child_order="count"),
     "default": SearchConfig(),
 }
 

@@ -20,7 +20,7 @@ from rllock.core import compiled_sampler as sampler
 from rllock.core import reference_checkers as ref
 from rllock.core.env import initial_state, make_task, sample_accepted, tightest_subset
 from rllock.core.verifier import verify_labels
-from rllock.search.solver import SearchConfig, search, solve
+from rllock.search.solver import SearchConfig, expand, search, solve
 
 
 def _cells(task, voxels) -> frozenset[ref.Voxel]:
@@ -213,12 +213,36 @@ def test_tightest_children_are_distinct_accepted_chunks_with_the_least_growth_or
             assert kid_growth.max() <= np.sort(growth)[len(kids) - 1]
 
 
-def test_the_default_remainder_is_the_surface_under_straight_removal_and_the_cut_under_path_removal():
+def test_by_default_straight_removal_judges_by_the_surface_and_path_removal_as_before():
     straight, path = make_task("cube4", 8), make_task("box:6x5x4", 12, "path")
-    assert SearchConfig().surface(straight) and not SearchConfig().surface(path)
-    assert SearchConfig(remainder="surface").surface(path) and not SearchConfig(remainder="cut").surface(
-        straight
-    )
+    default = SearchConfig()
+    assert default.surface(straight) and default.by_remainder(straight)
+    assert not default.surface(path) and not default.by_remainder(path)
+    assert SearchConfig(remainder="surface").surface(path)
+    assert not SearchConfig(remainder="cut").surface(straight)
+    assert SearchConfig(child_order="remainder").by_remainder(path)
+    assert not SearchConfig(child_order="count").by_remainder(straight)
+
+
+def test_children_are_tried_least_growth_first_or_most_continuations_first():
+    """Pop order, best last: by default the kept children in the order of the remainder's judgement;
+    with `child_order="count"` by the lookahead's count. Either way each child has a continuation."""
+    task = make_task("desia-dog", 40)
+    nbr = task.topology.arrays[0]
+    rng = np.random.default_rng(5)
+    tried = 0
+    for state in itertools.islice(random_valid_states(task, rng, 3), 1, 40, 5):
+        for order in ("remainder", "count"):
+            kids = expand(task, state, seed=7, config=SearchConfig(child_order=order))
+            assert all(k.grand is not None and len(k.grand) for k in kids)
+            if order == "count":
+                assert [k.share for k in kids] == sorted(k.share for k in kids)
+                continue
+            chunks = np.array([np.flatnonzero(k.state.labels == k.state.placed) for k in kids], np.int32)
+            growth = sampler.remainder_growth(nbr, state.labels, chunks, 1).tolist()
+            assert growth == sorted(growth, reverse=True)
+            tried += len(kids) > 2
+    assert tried
 
 
 def _accepted_with(task, state, seed, **options):

@@ -91,6 +91,16 @@ class SearchConfig:
     unsolved, cube4 K=9 0.1 s against 3.3 s), "cut" under path removal (desia-bunny K=80, seeds 0-5,
     120 s: cut solved 4, surface 2). Measured side by side (docs/benchmarks.md, "The remainder's
     surface")."""
+    child_order: Literal["count", "remainder"] | None = None
+    """The order a node's children are tried in, under lookahead: "remainder", in deep mode the order of
+    `remainder`'s judgement (the least growth first); "count", the most accepted continuations first
+    (the only order until the commit after 24493fb). Either way children with no continuation are
+    dropped. None: by removal mode, "remainder" under straight removal, "count" under path removal.
+    Rollouts from a node's kept children (`scripts/chunk_study.py`) ordered 61.8% of their sibling pairs
+    rightly by the remainder's surface and 39.1% by the count (174 pairs); in the search, seeds 0-4,
+    60 s, desia-dog K=60 was solved on 5 seeds against 2 and sofa K=19's median fell from 4.3 to 1.8 s;
+    desia-bunny K=80 path, seeds 0-5, 120 s, was solved on 2 seeds against 4 (docs/benchmarks.md,
+    "Which chunks become children, and in what order they are tried")."""
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
@@ -113,6 +123,12 @@ class SearchConfig:
 
     def deep(self, task: Task) -> bool:
         return task.pieces >= self.deep_from
+
+    def by_remainder(self, task: Task) -> bool:
+        """Whether children are tried in the order of the remainder's judgement (`child_order`)."""
+        if self.child_order is not None:
+            return self.child_order == "remainder"
+        return task.removal == "straight"
 
     def surface(self, task: Task) -> bool:
         """Whether deep mode keeps the children that grow the remainder's surface least (`remainder`)."""
@@ -375,12 +391,14 @@ class _Expander:
         if not self.config.lookahead or state.placed + 1 == self.target:
             return self.guided([Child(k, None, 0.0) for k in kids])
         scored = []
-        for kid, (grand, count) in zip(kids, self.sample_all(kids, chunks)):
+        by_remainder = self.config.by_remainder(self.task)
+        for i, (kid, (grand, count)) in enumerate(zip(kids, self.sample_all(kids, chunks))):
             if len(grand):
-                scored.append((count, kid, grand))
+                # In deep mode `chunks` come best first by the remainder's judgement (`tightest_subset`).
+                scored.append((-i if by_remainder else count, count, kid, grand))
         scored.sort(key=lambda t: t[0])
-        most = max((count for count, _, _ in scored), default=1)
-        children = [Child(kid, grand, count / most) for count, kid, grand in scored]
+        most = max((count for _, count, _, _ in scored), default=1)
+        children = [Child(kid, grand, count / most) for _, count, kid, grand in scored]
         return self.guided(children)
 
     def guided(self, children: list[Child]) -> list[Child]:
