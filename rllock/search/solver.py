@@ -50,7 +50,8 @@ class SearchConfig:
     samples_per_node: int = 512
     """Raw chunks sampled when a node is expanded."""
     children: int = 8
-    """Distinct accepted chunks kept per node (tried in random order)."""
+    """Distinct accepted chunks kept per node (which, and in what order they are tried: `remainder`,
+    `child_order`)."""
     restart_base: int = 64
     """Node expansions per unit of the Luby restart schedule (at least)."""
     restart_per_piece: int = 4
