@@ -224,25 +224,31 @@ def test_by_default_straight_removal_judges_by_the_surface_and_path_removal_as_b
     assert not SearchConfig(child_order="count").by_remainder(straight)
 
 
-def test_children_are_tried_least_growth_first_or_most_continuations_first():
-    """Pop order, best last: by default the kept children in the order of the remainder's judgement;
-    with `child_order="count"` by the lookahead's count. Either way each child has a continuation."""
+def test_children_are_tried_least_growth_first_near_the_end_else_most_continuations_first():
+    """Pop order, best last: in the order of the remainder's judgement at nodes with at most
+    `order_within` pieces left, else (or with `child_order="count"`) by the lookahead's count. Either
+    way each child has a continuation."""
     task = make_task("desia-dog", 40)
     nbr = task.topology.arrays[0]
     rng = np.random.default_rng(5)
     tried = 0
+    configs = {
+        "remainder": SearchConfig(child_order="remainder", order_within=task.pieces),
+        "count": SearchConfig(child_order="count"),
+        "beyond": SearchConfig(child_order="remainder", order_within=0),
+    }
     for state in itertools.islice(random_valid_states(task, rng, 3), 1, 40, 5):
-        for order in ("remainder", "count"):
-            kids = expand(task, state, seed=7, config=SearchConfig(child_order=order))
+        for name, config in configs.items():
+            kids = expand(task, state, seed=7, config=config)
             assert all(k.grand is not None and len(k.grand) for k in kids)
-            if order == "count":
+            if name != "remainder":
                 assert [k.share for k in kids] == sorted(k.share for k in kids)
                 continue
             chunks = np.array([np.flatnonzero(k.state.labels == k.state.placed) for k in kids], np.int32)
             growth = sampler.remainder_growth(nbr, state.labels, chunks, 1).tolist()
             assert growth == sorted(growth, reverse=True)
-            tried += len(kids) > 2
-    assert tried
+            tried += len(kids) > 2 and growth != sorted(growth)
+    assert tried  # nodes where the two orders differ
 
 
 def _accepted_with(task, state, seed, **options):

@@ -102,6 +102,12 @@ class SearchConfig:
     60 s, desia-dog K=60 was solved on 5 seeds against 2 and sofa K=19's median fell from 4.3 to 1.8 s;
     desia-bunny K=80 path, seeds 0-5, 120 s, was solved on 2 seeds against 4 (docs/benchmarks.md,
     "Which chunks become children, and in what order they are tried")."""
+    order_within: int = 64
+    """`child_order` "remainder" orders the children of nodes with at most this many pieces left to
+    place; above, the count orders them. On the Stanford bunny at resolution 30 with K = 300 the
+    remainder's order at every node took 292 s against the count's 19 s (seed 0); with it in the last 16
+    pieces only, desia-dog K=60 lost most of its gain (seeds 0-2: none, 54.7, 0.7 s against 2.9, 6.9,
+    8.6 s); in the last 64, the bunny took 20.7 and 20.1 s (seeds 0, 1; the count 19.1 and 22.1 s)."""
     lookahead: bool = True
     """Expand children as soon as their parent is, and try first the child with the most accepted
     continuations (fail-first pruning: children with none are dropped before they are entered)."""
@@ -392,7 +398,8 @@ class _Expander:
         if not self.config.lookahead or state.placed + 1 == self.target:
             return self.guided([Child(k, None, 0.0) for k in kids])
         scored = []
-        by_remainder = self.config.by_remainder(self.task)
+        config, task = self.config, self.task
+        by_remainder = config.by_remainder(task) and task.pieces - 1 - state.placed <= config.order_within
         for i, (kid, (grand, count)) in enumerate(zip(kids, self.sample_all(kids, chunks))):
             if len(grand):
                 # In deep mode `chunks` come best first by the remainder's judgement (`tightest_subset`).
