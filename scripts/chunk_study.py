@@ -22,7 +22,7 @@ import logging
 import time
 
 import numpy as np
-from guide_siblings import mid_node
+from guide_siblings import mid_node, pairs_right
 
 from rllock.config import GuideTrainConfig
 from rllock.core import compiled_sampler as sampler
@@ -132,19 +132,6 @@ def _easy(task: Task, state: State, chunks: np.ndarray, seed: int, expansions: i
     )
 
 
-def pairs_right(score: np.ndarray, target: np.ndarray, group: np.ndarray) -> tuple[float, int]:
-    """Share of sibling pairs with different targets that `score` orders as the targets do (ties half)."""
-    right, total = 0.0, 0
-    for g in np.unique(group):
-        s, t = score[group == g], target[group == g]
-        ds, dt = s[:, None] - s[None, :], t[:, None] - t[None, :]
-        mask = np.triu(dt != 0, 1)
-        total += int(mask.sum())
-        prod = (ds * dt)[mask]
-        right += float((prod > 0).sum() + 0.5 * (prod == 0).sum())
-    return right / max(total, 1), total
-
-
 def _pairs(x: np.ndarray, t: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature differences of sibling pairs with different targets, and 1 where the first is better."""
     dx, y = [], []
@@ -208,13 +195,13 @@ def judge(paths: list[str]) -> None:
     )
     print("|---|---|---|---|---|")
     for name, s in singles.items():
-        a, n = pairs_right(s, won, group)
-        b, m = pairs_right(s, reach, group)
+        a, n = pairs_right(s, won, group, 0.0)
+        b, m = pairs_right(s, reach, group, 0.0)
         top = []
         for g in nodes:
             idx = np.flatnonzero(group == g)
             top.append(won[idx[np.argsort(-s[idx], kind="stable")[:8]]].mean())
-        c, q = pairs_right(s[kept], won[kept], group[kept])
+        c, q = pairs_right(s[kept], won[kept], group[kept], 0.0)
         print(f"| {name} | {a:.1%} of {n} | {b:.1%} of {m} | {np.mean(top):.3f} | {c:.1%} of {q} |")
 
 

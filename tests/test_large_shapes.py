@@ -216,12 +216,14 @@ def test_tightest_children_are_distinct_accepted_chunks_with_the_least_growth_or
 def test_by_default_straight_removal_judges_by_the_surface_and_path_removal_as_before():
     straight, path = make_task("cube4", 8), make_task("box:6x5x4", 12, "path")
     default = SearchConfig()
-    assert default.surface(straight) and default.by_remainder(straight)
-    assert not default.surface(path) and not default.by_remainder(path)
+    assert default.surface(straight) and default.by_remainder(straight, default.order_within)
+    assert not default.by_remainder(straight, default.order_within + 1)
+    assert not default.surface(path) and not default.by_remainder(path, 0)
     assert SearchConfig(remainder="surface").surface(path)
     assert not SearchConfig(remainder="cut").surface(straight)
-    assert SearchConfig(child_order="remainder").by_remainder(path)
-    assert not SearchConfig(child_order="count").by_remainder(straight)
+    assert SearchConfig(child_order="remainder").by_remainder(path, 0)
+    assert not SearchConfig(child_order="count").by_remainder(straight, 0)
+    assert not SearchConfig(deep_from=30).by_remainder(straight, 0)  # out of deep mode: no such order
 
 
 def test_children_are_tried_least_growth_first_near_the_end_else_most_continuations_first():

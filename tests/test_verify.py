@@ -222,14 +222,9 @@ EVERY_CHECK = {None, "connected", "removable", "interlocking"}
 
 
 @pytest.mark.parametrize(
-    "shape,k,removal,seen",
-    [
-        ("cube4", 7, "straight", EVERY_CHECK),
-        ("cube5", 13, "path", EVERY_CHECK),
-        ("desia-bunny", 40, "straight", EVERY_CHECK - {"interlocking"}),
-    ],
+    "shape,k,removal", [("cube4", 7, "straight"), ("cube5", 13, "path"), ("desia-bunny", 40, "straight")]
 )
-def test_verdicts_equal_the_reference_checkers_stage_by_stage(shape, k, removal, seen, data):
+def test_verdicts_equal_the_reference_checkers_stage_by_stage(shape, k, removal, data):
     """The verifier's verdicts, disassembly moves included, are those of the reference checkers applied to
     every stage plainly, on solver assemblies, published ones and corruptions of both that fail at every
     kind of stage and check."""
@@ -246,4 +241,4 @@ def test_verdicts_equal_the_reference_checkers_stage_by_stage(shape, k, removal,
             got = (verdict.valid, verdict.failed_stage, verdict.failed_check, verdict.disassembly)
             assert got == reference_verdict(labels, removal)
             checks.add(verdict.failed_check)
-    assert seen <= checks  # which corruptions fail where depends on the solver's assemblies
+    assert checks == EVERY_CHECK

@@ -131,22 +131,26 @@ class SearchConfig:
     def deep(self, task: Task) -> bool:
         return task.pieces >= self.deep_from
 
-    def by_remainder(self, task: Task) -> bool:
-        """Whether children are tried in the order of the remainder's judgement (`child_order`)."""
-        if self.child_order is not None:
-            return self.child_order == "remainder"
-        return task.removal == "straight"
+    def by_remainder(self, task: Task, left: int) -> bool:
+        """Whether a node with `left` pieces left to place tries its children in the order of the
+        remainder's judgement (`child_order`, `order_within`): only in deep mode, where
+        `env.tightest_subset` hands them over in that order."""
+        return self.deep(task) and left <= self.order_within and _chosen(self.child_order, "remainder", task)
 
     def surface(self, task: Task) -> bool:
         """Whether deep mode keeps the children that grow the remainder's surface least (`remainder`)."""
-        if self.remainder is not None:
-            return self.remainder == "surface"
-        return task.removal == "straight"
+        return _chosen(self.remainder, "surface", task)
 
     def restart_unit(self, task: Task, placed: int) -> int:
         """Node expansions per unit of the Luby schedule for a search of `task` to `placed` pieces."""
         per_piece = self.deep_restart_per_piece if self.deep(task) else self.restart_per_piece
         return max(self.restart_base, per_piece * placed)
+
+
+def _chosen(choice: str | None, wanted: str, task: Task) -> bool:
+    """Whether `choice` is `wanted`; None chooses it under straight removal only, where it was measured
+    better (under path removal the former search is kept)."""
+    return task.removal == "straight" if choice is None else choice == wanted
 
 
 @dataclass(frozen=True)
@@ -399,7 +403,7 @@ class _Expander:
             return self.guided([Child(k, None, 0.0) for k in kids])
         scored = []
         config, task = self.config, self.task
-        by_remainder = config.by_remainder(task) and task.pieces - 1 - state.placed <= config.order_within
+        by_remainder = config.by_remainder(task, task.pieces - 1 - state.placed)
         for i, (kid, (grand, count)) in enumerate(zip(kids, self.sample_all(kids, chunks))):
             if len(grand):
                 # In deep mode `chunks` come best first by the remainder's judgement (`tightest_subset`).
