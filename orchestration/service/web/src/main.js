@@ -142,12 +142,18 @@ function cellsOf(voxels, dims) {
 
 // ---- shapes ----------------------------------------------------------------------------------------
 
+// Previews overlap (a file chosen, then its resolution changed): only the latest one's answer is shown,
+// whichever answer comes back last.
+let previews = 0;
+
 async function preview() {
+  const mine = ++previews;
   showError("");
   document.body.dataset.phase = "preview";
   $("shape-info").textContent = "reading the shape…";
   try {
     const info = await api("/api/shape", { method: "POST", body: shapeForm() });
+    if (mine !== previews) return;
     page.shapeInfo = info;
     const k = info.pieces;
     $("shape-info").textContent =
@@ -161,6 +167,7 @@ async function preview() {
     // When the page first showed a shape, for the browser test's first-view time.
     if (window.firstViewMs === undefined) window.firstViewMs = performance.now();
   } catch (e) {
+    if (mine !== previews) return;
     $("shape-info").textContent = "";
     showError(e.message);
   }
