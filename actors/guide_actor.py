@@ -27,7 +27,7 @@ from rllock.core.env import State, Task
 from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts, derive_seed
 from rllock.search.curriculum import draw_task
-from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode
+from rllock.search.guide import GLOBALS, Guide, channels, encode
 from rllock.search.solver import SearchStats, expand, rollout_reach, search
 
 
@@ -77,7 +77,7 @@ class Labelled:
     """Encoded children with their rollout labels: the share of rollouts that reached an assembly, and
     what each rollout reached (`solver.rollout_reach`: 1.0 an assembly)."""
 
-    window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
+    window: np.ndarray  # int8 [B, W, W, W, channels]
     features: np.ndarray  # float32 [B, GLOBALS]
     reach: np.ndarray  # float32 [B, rollouts]
     group: np.ndarray  # int64 [B]: the parent's number (siblings share it)
@@ -92,13 +92,14 @@ def label_children(task: Task, parents: list[State], config: GuideTrainConfig, s
     """The children of each of `parents` (`solver.expand`), each labelled by the share of
     `config.rollouts` plain searches from it that reach an assembly."""
     w = config.guide.window
-    windows, features, reach = [np.zeros((0, w, w, w, CHANNELS), np.int8)], [np.zeros((0, GLOBALS))], []
+    depth = channels(config.guide)
+    windows, features, reach = [np.zeros((0, w, w, w, depth), np.int8)], [np.zeros((0, GLOBALS))], []
     group: list[int] = []
     for p, parent in enumerate(parents):
         children = expand(task, parent, seed=derive_seed(seed, p))
         if not children:
             continue
-        e = encode(task, [c.state for c in children], [c.share for c in children], w)
+        e = encode(task, [c.state for c in children], [c.share for c in children], config.guide)
         windows.append(e.window)
         features.append(e.features)
         group += [p] * len(children)

@@ -34,9 +34,9 @@ class GuideBuffer:
     reached. A batch (`sample`) is pairs: its first half drawn uniformly, its second half a sibling of
     each (`paired` says which pairs are siblings: a state whose siblings are all gone has none)."""
 
-    def __init__(self, capacity: int, window: int):
+    def __init__(self, capacity: int, window: int, channels: int = CHANNELS):
         self.capacity = capacity
-        self.window = np.zeros((capacity, window, window, window, CHANNELS), np.int8)
+        self.window = np.zeros((capacity, window, window, window, channels), np.int8)
         self.features = np.zeros((capacity, GLOBALS), np.float32)
         self.target = np.zeros(capacity, np.float32)
         self.group = np.full(capacity, -1, np.int64)

@@ -36,6 +36,7 @@ from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
 from rllock.files.provenance import provenance
+from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ def _start_buffer(config: GuideTrainConfig) -> Any:
     return (
         ray.remote(num_cpus=0)(GuideBuffer)
         .options(scheduling_strategy=on_driver_node())
-        .remote(config.buffer_capacity, config.guide.window)
+        .remote(config.buffer_capacity, config.guide.window, channels(config.guide))
     )
 
 

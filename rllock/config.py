@@ -303,6 +303,9 @@ class GuideConfig:
     """Channels of the window's two convolutions (each followed by a 2x2x2 pooling)."""
     guide_hidden: int = 64
     """Width of the hidden layers that join the window and the global features."""
+    overview: bool = False
+    """Also show the network the whole remaining volume: R and the placed pieces in R's bounding box,
+    scaled down to the window's side (two more channels, their own convolutions)."""
 
 
 GUIDE_LABELS = ("won", "reach")

@@ -51,7 +51,7 @@ def main() -> None:
         encode_s, network_s = [], []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            e = encode(task, states, shares, guide.config.window)
+            e = encode(task, states, shares, guide.config)
             t1 = time.perf_counter()
             np.asarray(guide_values(guide.params, e.window, e.features, config=guide.config))
             network_s.append(time.perf_counter() - t1)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -22,11 +23,13 @@ from rllock.errors import RLLockError
 from rllock.files import orbax_io
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task
-from rllock.search.guide import CHANNELS, GLOBALS, Guide, encode, init_guide
+from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide
 from rllock.search.solver import (
+    Child,
     SearchConfig,
     SearchStats,
+    _backjump,
     expand,
     rollout_reach,
     search,
@@ -119,7 +122,7 @@ def test_the_window_matches_a_cell_by_cell_reference_and_features_are_bounded():
                 break
             state = apply_chunk(state, chunks[0])
             states.append(state)
-        encoded = encode(task, states, [1.0] * len(states), 8)
+        encoded = encode(task, states, [1.0] * len(states), GuideConfig(window=8))
         assert encoded.window.shape == (len(states), 8, 8, 8, CHANNELS)
         assert encoded.features.shape == (len(states), GLOBALS)
         for i, s in enumerate(states):
@@ -127,6 +130,44 @@ def test_the_window_matches_a_cell_by_cell_reference_and_features_are_bounded():
         assert np.isfinite(encoded.features).all() and (encoded.features >= 0).all()
         remaining = encoded.features[:, 0]  # R's share of the shape falls with each piece
         assert (np.diff(remaining) < 0).all() and remaining[0] == 1.0
+
+
+def _reference_overview(task, state, w):
+    """Each voxel of R's bounding box put in its cell one by one."""
+    coords = task.topology.coords
+    free = coords[state.labels == 0]
+    lo, hi = free.min(axis=0), free.max(axis=0) + 1
+    step = max(1.0, max(hi - lo) / w)
+    label_at = {tuple(c): int(label) for c, label in zip(coords, state.labels)}
+    counts = np.zeros((w, w, w, 3))
+    for x in range(lo[0], hi[0]):
+        for y in range(lo[1], hi[1]):
+            for z in range(lo[2], hi[2]):
+                cell = tuple(int((v - a) / step) for v, a in zip((x, y, z), lo))
+                label = label_at.get((x, y, z), -1)
+                counts[cell] += [1, label == 0, label > 0]
+    return np.round(100 * counts[..., 1:] / np.maximum(counts[..., :1], 1)).astype(np.int8)
+
+
+def test_the_overview_matches_a_voxel_by_voxel_reference_and_feeds_the_network():
+    rng = np.random.default_rng(4)
+    config = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16, overview=True)
+    for shape, k in [("bunny", 20), ("box:5x4x3", 6), ("desia-dog", 40)]:  # R's box above and below 8
+        task = make_task(shape, k)
+        state = initial_state(task)
+        for _ in range(6):
+            encoded = encode(task, [state], [1.0], config)
+            assert encoded.window.shape == (1, 8, 8, 8, channels(config))
+            window = encoded.window[0]
+            np.testing.assert_array_equal(window[..., :CHANNELS], _reference_window(task, state, 8))
+            np.testing.assert_array_equal(window[..., CHANNELS:], _reference_overview(task, state, 8))
+            chunks = sample_accepted(task, state, seed=int(rng.integers(1 << 30)), num_samples=256)
+            if not len(chunks):
+                break
+            state = apply_chunk(state, chunks[0])
+    guide = Guide(config, init_guide(config, jax.random.PRNGKey(0)), "untrained, overview")
+    values = guide.values(task, [initial_state(task), state], [1.0, 1.0])
+    assert values.shape == (2,) and ((values > 0) & (values < 1)).all() and values[0] != values[1]
 
 
 def test_the_search_reports_the_states_it_leaves_and_an_assemblys_path_whole():
@@ -231,6 +272,61 @@ def test_a_node_whose_children_all_value_below_abandon_below_is_abandoned():
     assert len(found) == 1 and verify_labels(found[0], task.removal).valid  # above it: searched as before
     plain = solve(task, count=1, time_limit=120, seed=0, guide=high)
     assert np.array_equal(found[0], plain[0])
+
+
+def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
+    task = make_task("cube5", 13)
+    keep = SearchConfig(guide_orders=False)
+    # A constant value: the expected shortfall (1 - v) x pieces left never grows, so it never backjumps.
+    level = replace(keep, backjump=0.5)
+    runs = []
+    for guide, config in ((None, SearchConfig()), (_constant(0.3), level), (_untrained(), keep)):
+        stats = SearchStats()
+        found = next(search(task, seed=1, time_limit=120, guide=guide, config=config, stats=stats))
+        runs.append((found.labels.tobytes(), found.expansions, stats.restarts))
+    assert runs[0] == runs[1] == runs[2]
+    # The untrained guide's own order is another search.
+    ordered = next(search(task, seed=1, time_limit=120, guide=_untrained()))
+    assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
+
+
+def _path(values: list[float | None], target: int = 20) -> list[Child]:
+    """A root and a child per value, one piece each, the last the child whose subtree failed."""
+    task = make_task("cube4", target + 1)
+    state, path = initial_state(task), [Child(initial_state(task), None, 1.0)]
+    for v in values:
+        state = State(state.labels, state.placed + 1)
+        path.append(Child(state, None, 0.0, v))
+    return path
+
+
+def _reference_backjump(path: list[Child], least: float, target: int) -> int:
+    """Levels kept: the root up to the child whose step grew the expected shortfall most (by at least
+    `least` pieces), or all but the failed child."""
+    grew = {
+        i: (1 - path[i].value) * (target - i) - (1 - path[i - 1].value) * (target - i + 1)
+        for i in range(1, len(path))
+        if path[i].value is not None and path[i - 1].value is not None
+    }
+    best = max(grew.values(), default=-1.0)
+    if best < least:
+        return len(path) - 1
+    return max(i for i, g in grew.items() if g == best)
+
+
+def test_a_failed_subtree_backjumps_past_the_step_where_the_expected_shortfall_grew_most():
+    # shortfall (1 - v) x left: 19 x 0.1 = 1.9, 18 x 0.1 = 1.8, 17 x 0.5 = 8.5 (grew 6.7), 16 x 0.6 = 9.6
+    path = _path([0.9, 0.9, 0.5, 0.4])
+    assert _backjump(path, 2.0, 20) == 3  # path[3] and below are dropped: its siblings come next
+    assert _backjump(path, 7.0, 20) == 4  # not grown enough anywhere: one step back
+    assert _backjump(path, None, 20) == 4
+    assert _backjump(_path([None, None, 0.9, 0.1]), 2.0, 20) == 4  # the last step grew most: one step
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        size = int(rng.integers(1, 12))
+        values = [None if rng.random() < 0.2 else float(rng.random()) for _ in range(size)]
+        path, least = _path(values), float(rng.uniform(0, 5))
+        assert _backjump(path, least, 20) == _reference_backjump(path, least, 20), (values, least)
 
 
 def test_the_curriculum_draws_feasible_varied_tasks():

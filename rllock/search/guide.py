@@ -30,22 +30,33 @@ from rllock.core.env import State, Task
 from rllock.search.network import Conv3
 
 CHANNELS = 3  # remaining volume, placed pieces, outside the shape
+OVERVIEW = 2  # with `GuideConfig.overview`: R and the placed pieces in R's bounding box, in percent
 GLOBALS = 15
 PAD = 8  # network calls take a multiple of this many states
 
 
+def channels(config: GuideConfig) -> int:
+    """The window's channels: `CHANNELS`, and the overview's after them when the config has one."""
+    return CHANNELS + OVERVIEW * config.overview
+
+
 class GuideNet(nn.Module):
-    """(window [B, W, W, W, CHANNELS], globals [B, GLOBALS]) -> value logits [B]."""
+    """(window [B, W, W, W, channels(config)], globals [B, GLOBALS]) -> value logits [B]."""
 
     config: GuideConfig
 
     @nn.compact
     def __call__(self, window: jax.Array, features: jax.Array) -> jax.Array:
-        x = window
-        for f in self.config.guide_features:
-            x = nn.relu(Conv3(f)(x))  # the U-Net's matmul convolution: several times XLA's on the CPU
-            x = nn.avg_pool(x, (2, 2, 2), strides=(2, 2, 2))
-        x = jnp.concatenate([x.reshape(x.shape[0], -1), features], axis=-1)
+        towers = [window[..., :CHANNELS]]
+        if self.config.overview:  # another place and scale: convolutions of its own
+            towers.append(window[..., CHANNELS:] / 100.0)
+        flat = []
+        for x in towers:
+            for f in self.config.guide_features:
+                x = nn.relu(Conv3(f)(x))  # the U-Net's matmul convolution: several times XLA's on the CPU
+                x = nn.avg_pool(x, (2, 2, 2), strides=(2, 2, 2))
+            flat.append(x.reshape(x.shape[0], -1))
+        x = jnp.concatenate([*flat, features], axis=-1)
         x = nn.relu(nn.Dense(self.config.guide_hidden)(x))
         x = nn.relu(nn.Dense(self.config.guide_hidden)(x))
         return nn.Dense(1)(x)[:, 0]
@@ -53,7 +64,8 @@ class GuideNet(nn.Module):
 
 def init_guide(config: GuideConfig, key: jax.Array) -> dict:
     w = config.window
-    return GuideNet(config).init(key, jnp.zeros((1, w, w, w, CHANNELS)), jnp.zeros((1, GLOBALS)))["params"]
+    window = jnp.zeros((1, w, w, w, channels(config)))
+    return GuideNet(config).init(key, window, jnp.zeros((1, GLOBALS)))["params"]
 
 
 @partial(jax.jit, static_argnames=("config",))
@@ -67,20 +79,47 @@ def guide_values(params: dict, window: jax.Array, features: jax.Array, *, config
 class Encoded:
     """A batch of states as the guide sees them."""
 
-    window: np.ndarray  # int8 [B, W, W, W, CHANNELS]
+    window: np.ndarray  # int8 [B, W, W, W, channels(config)]
     features: np.ndarray  # float32 [B, GLOBALS]
 
 
-def encode(task: Task, states: list[State], shares: list[float], window: int) -> Encoded:
+def encode(task: Task, states: list[State], shares: list[float], config: GuideConfig) -> Encoded:
     """The guide's inputs for `states` of `task` with their lookahead shares (module docstring); each
     state's last placed piece is the window's centre (the root, with none: the shape's centre)."""
-    windows = np.zeros((len(states), window, window, window, CHANNELS), np.int8)
+    w = config.window
+    windows = np.zeros((len(states), w, w, w, channels(config)), np.int8)
     features = np.zeros((len(states), GLOBALS), np.float32)
     for i, state in enumerate(states):
         centre = np.round(_centre(task, state)).astype(np.int64)  # once: both boxes are around it
-        windows[i] = _window(task, state, centre, window)
-        features[i] = _features(task, state, centre, 2 * window, shares[i])
+        windows[i, ..., :CHANNELS] = _window(task, state, centre, w)
+        if config.overview:
+            windows[i, ..., CHANNELS:] = overview(task, state, w)
+        features[i] = _features(task, state, centre, 2 * w, shares[i])
     return Encoded(windows, features)
+
+
+def overview(task: Task, state: State, w: int) -> np.ndarray:
+    """int8 [w, w, w, OVERVIEW]: R's bounding box scaled by the same factor along every axis so that it
+    fits w (never enlarged), from its low corner; per cell, the percent of its voxels that are in R and
+    that are placed pieces. Its cost follows R's box, not the shape: within the guide's horizon, the
+    last pieces, R is small."""
+    topo = task.topology
+    free = topo.coords[state.labels == 0]
+    out = np.zeros((w, w, w, OVERVIEW), np.int8)
+    if not len(free):
+        return out
+    lo, hi = free.min(axis=0), free.max(axis=0) + 1
+    step = max(1.0, float((hi - lo).max()) / w)  # box voxels per cell along an axis
+    box = topo.index[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+    inside = box >= 0
+    label = np.where(inside, state.labels[np.where(inside, box, 0)], -1)
+    cell = (np.indices(box.shape).reshape(3, -1).T / step).astype(np.int64)
+    flat = np.ravel_multi_index(cell.T, (w, w, w))
+    volume = np.bincount(flat, minlength=w**3)
+    for c, mask in enumerate((label == 0, label > 0)):
+        counts = np.bincount(flat, weights=mask.ravel(), minlength=w**3)
+        out[..., c] = np.round(100 * counts / np.maximum(volume, 1)).reshape(w, w, w)
+    return out
 
 
 def _centre(task: Task, state: State) -> np.ndarray:
@@ -171,7 +210,7 @@ class Guide:
         compile the network again."""
         if not states:
             return np.zeros(0, np.float32)
-        e = encode(task, states, shares, self.config.window)
+        e = encode(task, states, shares, self.config)
         rows = -(-len(states) // PAD) * PAD
         window = np.zeros((rows, *e.window.shape[1:]), np.int8)
         features = np.zeros((rows, GLOBALS), np.float32)

@@ -120,6 +120,13 @@ class SearchConfig:
     abandon_below: float = 0.0
     """With a guide network: a node whose every child is valued below this is abandoned, the search
     backtracks at once (most nodes' children all win or all lose: the failure was set higher up)."""
+    guide_orders: bool = True
+    """With a guide network: its values (and the lookahead share, `guide_count_weight`) order the
+    children; False keeps the search's own order and uses the values only to backjump."""
+    backjump: float | None = None
+    """With a guide network: when a subtree fails, the search backtracks past the step on its path where
+    the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
+    many pieces there (the failure was set at that step); None backtracks one step."""
 
     def share_for(self, task: Task) -> float:
         """The share of closed-proposal chunks for `task`."""
@@ -209,6 +216,7 @@ class Child(NamedTuple):
     state: State
     grand: np.ndarray | None
     share: float
+    value: float | None = None  # the guide's, when it judged this child
 
 
 # A node's children are sampled on threads only when one sample takes at least this long: shorter ones
@@ -451,9 +459,10 @@ def _dfs(
             _left(path, record)
             return None, nodes.expansions
         if not stack[-1]:
-            stack.pop()
-            _left(path[-1:], record)
-            path.pop()
+            for _ in range(len(path) - _backjump(path, config.backjump, target) if guide else 1):
+                stack.pop()
+                _left(path[-1:], record)
+                path.pop()
             continue
         child = stack[-1].pop()
         if child.state.placed == target:
@@ -465,6 +474,23 @@ def _dfs(
     return None, nodes.expansions
 
 
+def _backjump(path: list[Child], least: float | None, target: int) -> int:
+    """How many levels of `path` stay when the subtree of its last child failed: all but that child, or
+    (with `least` pieces) fewer, up to the child where the expected shortfall grew most."""
+    keep = len(path) - 1
+    if least is None:
+        return keep
+    best = least
+    for i in range(1, len(path)):
+        a, b = path[i - 1], path[i]
+        if a.value is None or b.value is None:
+            continue
+        grew = (1 - b.value) * (target - b.state.placed) - (1 - a.value) * (target - a.state.placed)
+        if grew >= best:
+            best, keep = grew, i
+    return keep
+
+
 def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfig) -> list[Child]:
     """`children` in pop order by the guide's values plus
     `config.guide_count_weight` times their lookahead share, best last, without those valued below
@@ -472,6 +498,9 @@ def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfi
     values = guide.values(task, [c.state for c in children], [c.share for c in children])
     if values.max() < config.abandon_below:
         return []
+    children = [c._replace(value=float(v)) for c, v in zip(children, values)]
+    if not config.guide_orders:
+        return children
     score = [values[i] + config.guide_count_weight * c.share for i, c in enumerate(children)]
     order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
