@@ -1,7 +1,11 @@
 """The guide network's cost per evaluation at three shape sizes (issue 33): one search node's children
 (8 states after one piece) encoded and evaluated in one call, median over repeats, one core.
 
-    .venv/bin/python scripts/bench_guide_cost.py [--guide CHECKPOINT] [--repeats 50]
+    .venv/bin/python scripts/bench_guide_cost.py [--guide CHECKPOINT] [--repeats 50] [--left L]
+
+`--left L`: instead, 8 states with L pieces left, where the guide judges (its horizon): R the L x n
+voxels nearest a point (a different point per state), the rest placed pieces, the last of them the next
+n voxels out. Not states a search reaches, but what the encoding's cost depends on: N and R's box.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import jax
 import numpy as np
 
 from rllock.config import GuideConfig
-from rllock.core.env import apply_chunk, initial_state, make_task, sample_accepted
+from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
 from rllock.search.guide import Guide, encode, guide_values, init_guide
 from rllock.search.guide_checkpoint import load_guide
 
@@ -32,10 +36,26 @@ def children(shape: str, pieces: int, count: int = 8):
     raise SystemExit(f"no {count} first pieces found for {shape}")
 
 
+def near_the_end(shape: str, pieces: int, left: int, count: int = 8):
+    task = make_task(shape, pieces)
+    coords, n = task.topology.coords, task.piece_size
+    rng = np.random.default_rng(0)
+    states = []
+    for _ in range(count):
+        far = np.argsort(np.abs(coords - coords[rng.integers(len(coords))]).sum(axis=1))[::-1]
+        placed = pieces - 1 - left
+        labels = np.zeros(len(coords), np.int16)
+        ordered = far[: placed * n]  # the farthest voxels were placed first, the last piece next to R
+        labels[ordered] = 1 + np.arange(len(ordered)) // n
+        states.append(State(labels, placed))
+    return task, states
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--guide", default=None, help="default: an untrained guide of the default size")
     parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--left", type=int, default=None, help="states with this many pieces left")
     args = parser.parse_args()
     config = GuideConfig()
     guide = (
@@ -45,7 +65,8 @@ def main() -> None:
     )
     rows = []
     for shape, pieces in SHAPES:
-        task, states = children(shape, pieces)
+        left = args.left
+        task, states = children(shape, pieces) if left is None else near_the_end(shape, pieces, left)
         shares = [1.0] * len(states)
         guide.values(task, states, shares)  # compile
         encode_s, network_s = [], []

@@ -87,6 +87,19 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         help="the guided arms abandon a node whose children all value below this (default: the "
         "search's own, SearchConfig.abandon_below)",
     )
+    p.add_argument(
+        "--backjump",
+        type=positive_float,
+        default=None,
+        help="the guided arms backtrack past the step where the expected shortfall grew by at least this "
+        "many pieces (SearchConfig.backjump; default: one step)",
+    )
+    p.add_argument(
+        "--keep-order",
+        action="store_true",
+        help="the guided arms keep the search's own order of children; the values only judge "
+        "(SearchConfig.guide_orders False)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 
