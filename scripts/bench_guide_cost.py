@@ -40,10 +40,10 @@ def near_the_end(shape: str, pieces: int, left: int, count: int = 8):
     task = make_task(shape, pieces)
     coords, n = task.topology.coords, task.piece_size
     rng = np.random.default_rng(0)
+    placed = pieces - 1 - left
     states = []
     for _ in range(count):
         far = np.argsort(np.abs(coords - coords[rng.integers(len(coords))]).sum(axis=1))[::-1]
-        placed = pieces - 1 - left
         labels = np.zeros(len(coords), np.int16)
         ordered = far[: placed * n]  # the farthest voxels were placed first, the last piece next to R
         labels[ordered] = 1 + np.arange(len(ordered)) // n
@@ -65,8 +65,9 @@ def main() -> None:
     )
     rows = []
     for shape, pieces in SHAPES:
-        left = args.left
-        task, states = children(shape, pieces) if left is None else near_the_end(shape, pieces, left)
+        task, states = (
+            children(shape, pieces) if args.left is None else near_the_end(shape, pieces, args.left)
+        )
         shares = [1.0] * len(states)
         guide.values(task, states, shares)  # compile
         encode_s, network_s = [], []

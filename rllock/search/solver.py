@@ -459,7 +459,8 @@ def _dfs(
             _left(path, record)
             return None, nodes.expansions
         if not stack[-1]:
-            for _ in range(len(path) - _backjump(path, config.backjump, target) if guide else 1):
+            keep = _backjump(path, config.backjump, target)  # one step back unless the guide's values say
+            while len(path) > keep:
                 stack.pop()
                 _left(path[-1:], record)
                 path.pop()
@@ -494,7 +495,9 @@ def _backjump(path: list[Child], least: float | None, target: int) -> int:
 def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfig) -> list[Child]:
     """`children` in pop order by the guide's values plus
     `config.guide_count_weight` times their lookahead share, best last, without those valued below
-    `config.prune_below` (never all, unless every one is valued below `config.abandon_below`)."""
+    `config.prune_below` (never all, unless every one is valued below `config.abandon_below`). Each
+    carries its value (for `_backjump`); with `config.guide_orders` False they keep their order and
+    none is pruned."""
     values = guide.values(task, [c.state for c in children], [c.share for c in children])
     if values.max() < config.abandon_below:
         return []
