@@ -19,8 +19,10 @@ from rllock.files.assembly import write_assembly
 from rllock.files.render import (
     disassembly_steps,
     draw_png,
+    label_point,
     piece_colors,
     touching_pieces,
+    view_direction,
     write_gif,
     write_html,
     write_picture,
@@ -76,6 +78,53 @@ def test_png_shows_every_piece(tmp_path):
     image = Image.open(tmp_path / "cube6.png")
     assert image.size == (900, 450)
     assert _colourful_pixels(image) > 0.1 * 900 * 450
+
+
+def _seen(point: np.ndarray, solid: np.ndarray, view: np.ndarray) -> bool:
+    """Reference: the ray from `point` towards the camera, in steps of 0.01, meets no voxel of `solid`."""
+    for t in np.arange(0.01, np.linalg.norm(solid.shape) + 1, 0.01):
+        cell = np.floor(point + t * view).astype(int)
+        if np.all(cell >= 0) and np.all(cell < solid.shape) and solid[tuple(cell)]:
+            return False
+    return True
+
+
+@pytest.mark.parametrize("corner", [(3, 0, 0), (3, 3, 0), (0, 3, 3), (3, 3, 3), (1, 0, 3), (3, 1, 2)])
+def test_a_label_sits_on_the_nearest_face_the_camera_sees(corner):
+    # A 5^3 cube whose key is a 2^3 block: wherever the block is, its label must sit on a face of it that
+    # the camera sees (the demo's key, at the back, was labelled at its centre, over another piece).
+    view = view_direction(24, -58)
+    labels = np.full((5, 5, 5), 2)
+    x, y, z = corner
+    labels[x : x + 2, y : y + 2, z : z + 2] = 1
+    key, solid = labels == 1, labels > 0
+    at = label_point(key, solid, view, [(solid, np.zeros(3))])
+    # Brute force over every face of the key: those the camera sees, nearest first.
+    faces = [
+        voxel + 0.5 + 0.5 * np.asarray(d)
+        for voxel in np.argwhere(key)
+        for d in DIRECTIONS
+        if np.asarray(d) @ view > 0 and _seen(voxel + 0.5 + 0.5 * np.asarray(d), solid, view)
+    ]
+    assert faces, "every corner chosen shows the key"
+    nearest = max(faces, key=lambda f: f @ view)
+    np.testing.assert_allclose(at, nearest)
+    # The centre, where the label used to go, is hidden for a block at the back.
+    if corner == (3, 3, 0):
+        assert not _seen(np.argwhere(key).mean(axis=0) + 0.5, solid & ~key, view)
+
+
+def test_a_piece_the_camera_cannot_see_is_labelled_at_its_centre():
+    view = view_direction(24, -58)
+    labels = np.full((3, 3, 3), 2)
+    labels[1, 1, 1] = 1
+    solid = labels > 0
+    np.testing.assert_allclose(label_point(labels == 1, solid, view, [(solid, np.zeros(3))]), [1.5, 1.5, 1.5])
+    # Alone (as in the exploded view, without the pieces around it) it shows its nearest face.
+    alone = labels == 1
+    at = label_point(alone, alone, view, [(alone, np.zeros(3))])
+    nearest = max((1.5 + 0.5 * np.asarray(d)) @ view for d in DIRECTIONS)
+    assert _seen(at, alone, view) and np.isclose(at @ view, nearest)
 
 
 def test_a_picture_writer_puts_a_picture_next_to_the_assembly(tmp_path, labels):

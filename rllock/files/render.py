@@ -35,6 +35,12 @@ MAX_NUMBERED = 60
 MAX_ANIMATED = 200
 # GIF frames: at most this many per move, however many unit steps the move has.
 _FRAMES_PER_MOVE = 3
+# The PNG's camera, in degrees.
+_ELEV, _AZIM = 24.0, -58.0
+# A label goes on the nearest of a piece's faces that face the camera and are not hidden; the ray test
+# that tells hidden ones looks at this many candidates, nearest first, and marches in steps this long.
+_LABEL_CANDIDATES = 64
+_RAY_STEP = 0.25
 
 
 # Up to this many pieces each gets a colour of its own; more share DISTINCT colours so that no two touching
@@ -191,7 +197,7 @@ def _axes(fig: Figure, position: tuple[int, int, int], lo: np.ndarray, hi: np.nd
     ax.set_zlim(lo[2], hi[2])
     # Zoomed in because mplot3d leaves room for axis labels that are switched off here.
     ax.set_box_aspect(hi - lo, zoom=1.1)
-    ax.view_init(elev=24, azim=-58)
+    ax.view_init(elev=_ELEV, azim=_AZIM)
     ax.set_axis_off()
     ax.set_title(title, fontsize=10)
     return ax
@@ -219,19 +225,85 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     lo, hi = np.zeros(3), np.asarray(labels.shape, dtype=float)
     ax = _axes(fig, (1, 2, 1), lo, hi, "assembled")
     ax.add_collection3d(_collection(pieces, np.zeros((k, 3)), shown, colors))
-    # Labels are drawn over the pieces, so the key is marked even where it is hidden inside.
-    _label(ax, pieces[0].center, "key", key=True)
+    # Labels are drawn over the pieces, so the key is marked even where it is hidden inside; they sit on
+    # a face of their piece that the camera sees, not at its centre, which may lie behind another piece.
+    view = view_direction(_ELEV, _AZIM)
+    solid = labels > 0
+    _label(ax, label_point(labels == 1, solid, view, [(solid, np.zeros(3))]), "key", key=True)
     ex_lo, ex_hi = _scene_bounds(pieces, [Step("", spread, shown)])
     numbered = k <= MAX_NUMBERED
     title = "exploded (numbers = removal order)" if numbered else "exploded"
     ax = _axes(fig, (1, 2, 2), ex_lo, ex_hi, title)
     ax.add_collection3d(_collection(pieces, spread, shown, colors))
-    for i, (piece, off) in enumerate(zip(pieces, spread)):
+    exploded, base = _exploded_grid(labels, spread)
+    for i, off in enumerate(spread):
         if i == 0 or numbered:
-            _label(ax, piece.center + off, "1 key" if i == 0 else str(i + 1), key=i == 0)
+            mask = labels == i + 1
+            # The piece itself, and the others where they are drawn (to the nearest voxel), in its own
+            # coordinates.
+            scene = [(mask, np.zeros(3)), ((exploded != 0) & (exploded != i + 1), base - off)]
+            _label(
+                ax, label_point(mask, mask, view, scene) + off, "1 key" if i == 0 else str(i + 1), key=i == 0
+            )
     mode = f", {removal} removal" if removal else ""
     fig.suptitle(order_caption(k) + mode, fontsize=11, y=0.98)
     fig.savefig(path)
+
+
+def view_direction(elev: float, azim: float) -> np.ndarray:
+    """The unit vector from the scene towards mplot3d's camera at `elev`, `azim` (degrees)."""
+    e, a = np.radians(elev), np.radians(azim)
+    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
+def label_point(
+    mask: np.ndarray, closed: np.ndarray, view: np.ndarray, scene: list[tuple[np.ndarray, np.ndarray]]
+) -> np.ndarray:
+    """Where the label of the piece `mask` goes, in the piece's own voxel coordinates: the centre of its
+    face nearest the camera (along `view`) among the faces that look towards it and have no voxel of
+    `closed` on their other side, the first of the _LABEL_CANDIDATES nearest whose ray towards the
+    camera passes through nothing in `scene` (grids drawn at their offsets, in the coordinates of the
+    piece's drawing); the nearest when every one is hidden; the piece's centre when it has no such face."""
+    padded = np.pad(closed, 1)
+    voxels = np.argwhere(mask)
+    faces = []
+    for d in DIRECTIONS:
+        normal = np.asarray(d, dtype=float)
+        if normal @ view > 0:
+            open_side = ~padded[tuple((voxels + 1 + np.asarray(d)).T)]  # +1: padded coordinates
+            faces.append(voxels[open_side] + 0.5 + 0.5 * normal)
+    centres = np.concatenate(faces) if faces else np.empty((0, 3))
+    if not len(centres):
+        return voxels.mean(axis=0) + 0.5
+    near = centres[np.argsort(-(centres @ view), kind="stable")[:_LABEL_CANDIDATES]]
+    seen = _unhidden(near, view, scene)
+    return near[int(np.argmax(seen))] if seen.any() else near[0]
+
+
+def _exploded_grid(labels: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The exploded view as one label grid, each piece moved by its offset rounded to whole voxels,
+    and where the grid's voxel (0, 0, 0) is drawn."""
+    voxels = np.argwhere(labels > 0)
+    ids = labels[tuple(voxels.T)]
+    moved = voxels + np.rint(spread[ids - 1]).astype(int)
+    low = moved.min(axis=0)
+    grid = np.zeros(moved.max(axis=0) - low + 1, dtype=labels.dtype)
+    grid[tuple((moved - low).T)] = ids
+    return grid, low.astype(float)
+
+
+def _unhidden(points: np.ndarray, view: np.ndarray, scene: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Whether each point sees the camera: its ray along `view` (sampled every _RAY_STEP from just off
+    the point) enters no voxel of the grids of `scene`, each drawn at its offset."""
+    reach = max(float(np.linalg.norm(grid.shape) + np.abs(off).sum()) for grid, off in scene) + 1
+    steps = np.arange(_RAY_STEP, reach, _RAY_STEP)
+    samples = points[:, None, :] + steps[None, :, None] * view  # (P, S, 3)
+    hit = np.zeros(samples.shape[:2], dtype=bool)
+    for grid, off in scene:
+        cells = np.floor(samples - off).astype(int)
+        inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=2)
+        hit[inside] |= grid[tuple(cells[inside].T)]
+    return np.logical_not(hit.any(axis=1))
 
 
 def _label(ax: Axes3D, at: np.ndarray, text: str, key: bool) -> None:
