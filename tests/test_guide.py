@@ -497,6 +497,24 @@ def test_solve_with_a_guide_writes_a_verified_assembly_that_names_it(tmp_path):
     assert to_json(config)["guide"]["window"] == 8
 
 
+def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_one_line(tmp_path):
+    config = GuideTrainConfig(guide=CONFIG)
+    _save_guide(tmp_path / "run", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(2)), config)
+    bench = ["bench", "guide", "--guide", str(tmp_path / "run"), "--seeds", "0,1", "--time-limit", "30"]
+    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--backjump", "2", "--keep-order", "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    (row,) = doc["rows"]
+    assert doc["time_limit_s"] == 30 and row["cell"] == "cube4:6" and row["voxels"] == 64
+    # Every arm ran each seed once and solved it; with the order kept and a guide that backjumps only on a
+    # failed subtree, cube4 K=6 is solved as the solver solves it.
+    for arm in ("solver", "guided", "untrained"):
+        assert len(row[arm]) == 2 and all(r["seconds"] is not None for r in row[arm]), row
+    for bad, words in (("cube4", "bad cell"), ("cube4:x", "bad cell"), ("nosuchshape:6", "nosuchshape")):
+        code, out, err = run_cli(*bench, "--cells", bad)
+        assert code == 2 and err.count("\n") == 1 and words in err, err
+
+
 def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):
     from test_shipped_files import machine_paths
 
