@@ -171,7 +171,7 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
         if "given" not in moments and now > moments["started"] + 2.5:  # from here no share is busy enough
             moments["given"] = now
             monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", float("inf"))
-        return "given" in moments and now > moments["given"] + 4
+        return "given" in moments and now > moments["given"] + 5
 
     assert not list(portfolio_search(task, seed=0, workers=2, time_limit=40, stop=stop))
     assert "given" in moments, (moments, seen)
@@ -183,9 +183,9 @@ def test_a_portfolio_pauses_the_lent_worker_while_worker_0_samples_on_its_core(m
 
     up, given = moments["started"], moments["given"]
     assert used(up + 0.5, given) <= 1, (moments, seen)  # paused: at most a tick for the waits' wake-ups
-    assert used(given + 2, given + 4) >= 0.5 * os.sysconf("SC_CLK_TCK"), (
-        seen
-    )  # searching again: most of a core
+    # Searching again: ten times what a paused worker takes. Not "most of a core": beside the other pytest
+    # worker's Ray tests on 2 cores it once had 0.23 s of CPU in 2 s (CI's fresh clone at d517c42).
+    assert used(given + 1, given + 5) >= 0.1 * os.sysconf("SC_CLK_TCK"), (moments, seen)
     shared = [t - started for t, name in sampled_on if name.startswith("rllock-lookahead")]
     assert (
         shared and min(shared) < given and max(shared) < given + 2
