@@ -30,6 +30,11 @@ from rllock.search.curriculum import draw_task
 from rllock.search.guide import GLOBALS, Guide, channels, encode
 from rllock.search.solver import SearchStats, expand, rollout_reach, search
 
+# States kept per probe wanted: most states a failing search leaves are dead ends (no child to label),
+# and without spares its probes were mostly those, so that the searches that fail, where labels matter
+# most, gave none (docs/benchmarks.md, "On the GPU workstation").
+PROBE_CANDIDATES = 8
+
 
 @dataclass(frozen=True)
 class SearchReport:
@@ -89,13 +94,15 @@ class Labelled:
 
 
 def label_children(task: Task, parents: list[State], config: GuideTrainConfig, seed: int) -> Labelled:
-    """The children of each of `parents` (`solver.expand`), each labelled by the share of
-    `config.rollouts` plain searches from it that reach an assembly."""
+    """The children (`solver.expand`) of the first `config.probes` of `parents` that have any, each
+    labelled by the share of `config.rollouts` plain searches from it that reach an assembly."""
     w = config.guide.window
     depth = channels(config.guide)
     windows, features, reach = [np.zeros((0, w, w, w, depth), np.int8)], [np.zeros((0, GLOBALS))], []
     group: list[int] = []
     for p, parent in enumerate(parents):
+        if len(set(group)) == config.probes:
+            break
         children = expand(task, parent, seed=derive_seed(seed, p))
         if not children:
             continue
@@ -131,7 +138,7 @@ def run_search(
     task)."""
     rng = np.random.default_rng([seed, number])
     task = draw_task(rng, config)
-    probes = Probes(task, config.probes, config.min_left, config.max_left, rng)
+    probes = Probes(task, config.probes * PROBE_CANDIDATES, config.min_left, config.max_left, rng)
     stats = SearchStats()
     found = search(
         task,

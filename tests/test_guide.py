@@ -239,6 +239,20 @@ def test_probes_label_children_as_the_search_makes_them_with_rollout_shares():
     np.testing.assert_array_equal(labelled.target, again.target)
 
 
+def test_labelling_skips_dead_ends_and_stops_at_the_probes_wanted():
+    # A failing search leaves mostly dead ends: they are passed over, and the next kept states with
+    # children are labelled instead, at most `probes` of them.
+    task = make_task("cube4", 8)
+    config = GuideTrainConfig(guide=CONFIG, rollouts=1, rollout_expansions=5, probes=2)
+    dead = State(np.where(task.topology.coords[:, 0] == 1, 1, 0).astype(np.int16), 1)
+    root = initial_state(task)
+    assert expand(task, dead, seed=derive_seed(3, 0)) == []
+    labelled = label_children(task, [dead, root, dead, root, root], config, seed=3)
+    counts = [len(expand(task, root, seed=derive_seed(3, p))) for p in (1, 3)]
+    assert min(counts) > 0
+    assert labelled.group.tolist() == [1] * counts[0] + [3] * counts[1]
+
+
 def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():
     task = make_task("cube4", 7)
     # A guide that judges everything hopeless: pruning must still keep each node's best child.
