@@ -73,11 +73,17 @@ class GuideResult:
     stop_signal: int | None
 
 
-def resume_config(logdir: Path, minutes: float) -> GuideTrainConfig:
-    """The config of the guide run in `logdir`, from its newest readable checkpoint, with `minutes` more."""
+def resume_config(logdir: Path, minutes: float, actors: int, address: str | None) -> GuideTrainConfig:
+    """The config of the guide run in `logdir`, from its newest readable checkpoint, with `minutes` more,
+    on this machine: `actors` and `address` are where the run goes on (a run begun on a workstation goes
+    on on a laptop), not what it learns."""
     doc = ckpt.newest_readable(logdir, read_guide_metadata)
     return dataclasses.replace(
-        from_json(GuideTrainConfig, doc["config"]), logdir=str(logdir), minutes=minutes
+        from_json(GuideTrainConfig, doc["config"]),
+        logdir=str(logdir),
+        minutes=minutes,
+        actors=actors,
+        address=address,
     )
 
 

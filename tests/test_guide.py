@@ -24,7 +24,7 @@ from rllock.files import orbax_io
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, init_guide
-from rllock.search.guide_checkpoint import guide_metadata, load_guide
+from rllock.search.guide_checkpoint import guide_metadata, load_guide, read_guide_metadata
 from rllock.search.solver import (
     Child,
     SearchConfig,
@@ -587,9 +587,14 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
-    code, out, err = run_cli("train-guide", "--resume", str(run), "--minutes", "0.5", timeout=240)
+    # Where the run goes on is this command's: two actors, not the one it began with.
+    code, out, err = run_cli(
+        "train-guide", "--resume", str(run), "--minutes", "0.5", "--actors", "2", timeout=240
+    )
     assert code == 0, err
     assert f"resuming {run} at learner step {steps[-1]}" in err and "replay buffer restored" in err
     again = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     # Learning goes on from the restored buffer.
     assert again[-1] >= steps[-1] and again != steps
+    resumed = read_guide_metadata(run / "checkpoints" / str(again[-1]))["config"]
+    assert resumed["actors"] == 2 and resumed["search_seconds"] == 2

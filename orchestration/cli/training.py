@@ -200,7 +200,7 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
     if args.resume:
         from orchestration.guide_train import resume_config
 
-        config = resume_config(Path(args.resume), args.minutes)
+        config = resume_config(Path(args.resume), args.minutes, args.actors, args.address)
     else:
         config = from_flags(GuideTrainConfig, args)
     config.validate()
@@ -228,7 +228,11 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS})
     p.add_argument(
-        "--resume", metavar="LOGDIR", default=None, help="continue the guide run in LOGDIR; --minutes to add"
+        "--resume",
+        metavar="LOGDIR",
+        default=None,
+        help="continue the guide run in LOGDIR with its saved config; --minutes to add, and --actors and "
+        "--address say where it goes on",
     )
     p.set_defaults(func=cmd_train_guide)
 
