@@ -139,6 +139,7 @@ class _GuideRun:
             self.available = ray.get(self.buffer.restore.remote(str(snapshot)))
             log.info("replay buffer restored: %d states", self.available)
         self.interrupted, self.stop_signal = False, None
+        self.saved: tuple[int, int] | None = None  # (learner step, searches) of the last checkpoint
 
     def _restore(self) -> None:
         def restore(step_dir: Path) -> dict:
@@ -201,7 +202,8 @@ class _GuideRun:
                 self._checkpoint()
                 last_checkpoint = time.monotonic()
         self.calls.cancel_all()  # the budget is a hard limit: searches under way are dropped
-        self._checkpoint()
+        if (self.learner.step, c.searches) != self.saved:  # else the last periodic one holds it all
+            self._checkpoint()
         elapsed = time.monotonic() - self.began
         return GuideResult(
             self.learner.step,
@@ -277,6 +279,7 @@ class _GuideRun:
         doc = guide_metadata(self.config, self.learner.step, asdict(self.counters), self.sessions)
         orbax_io.save(self.manager, self.learner.step, self.learner.state(), doc)
         self.writer.flush()
+        self.saved = (self.learner.step, self.counters.searches)
         log.info(
             "checkpoint at learner step %d (%d searches, %d solved)",
             self.learner.step,

@@ -332,7 +332,7 @@ class GuideTrainConfig:
     """Seconds a search actor gives one curriculum task (it stops at the first assembly)."""
     probes: int = 2
     """States of each search (drawn among those it finished, `min_left` to `max_left` pieces before the
-    end) whose children are labelled by rollouts and go to the replay buffer."""
+    end, dead ends passed over) whose children are labelled by rollouts and go to the replay buffer."""
     min_left: int = 3
     """The fewest pieces left at a probed state."""
     max_left: int = 20

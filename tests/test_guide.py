@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from dataclasses import replace
 
@@ -577,6 +578,9 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     # most of 0.6 minutes, and the run ended before its first learner step.
     code, out, err = run_cli("train-guide", "--minutes", "1", "--logdir", str(run), *small, timeout=240)
     assert code == 0, err
+    # The final checkpoint is skipped when the last periodic one already holds the same step and searches.
+    saved = re.findall(r"checkpoint at learner step \d+ \(\d+ searches", err)
+    assert saved and len(saved) == len(set(saved)), saved
     steps = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     assert steps and steps[-1] > 0 and (run / "replay.npz").exists()
     events = EventAccumulator(str(run))
