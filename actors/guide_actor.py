@@ -26,7 +26,7 @@ from rllock.config import GuideTrainConfig
 from rllock.core.env import State, Task
 from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts, derive_seed
-from rllock.search.curriculum import draw_task
+from rllock.search.curriculum import draw_task, named_tasks
 from rllock.search.guide import GLOBALS, Guide, channels, encode
 from rllock.search.solver import SearchStats, expand, rollout_reach, search
 
@@ -132,12 +132,12 @@ def value_target(labelled: Labelled, label: str) -> np.ndarray:
 
 
 def run_search(
-    config: GuideTrainConfig, seed: int, number: int, guide: Guide | None
+    config: GuideTrainConfig, seed: int, number: int, guide: Guide | None, named: list[Task] | None = None
 ) -> tuple[Labelled, bool, int, Task]:
-    """Search number `number` of an actor seeded `seed`: (its labelled probes, solved, pieces placed,
-    task)."""
+    """Search number `number` of an actor seeded `seed` on a task of the curriculum (one of `named`, the
+    tasks of `--cells`, when there are any): (its labelled probes, solved, pieces placed, task)."""
     rng = np.random.default_rng([seed, number])
-    task = draw_task(rng, config)
+    task = draw_task(rng, config, named)
     probes = Probes(task, config.probes * PROBE_CANDIDATES, config.min_left, config.max_left, rng)
     stats = SearchStats()
     found = search(
@@ -156,6 +156,7 @@ def run_search(
 class GuideActor:
     def __init__(self, seed: int, config: GuideTrainConfig):
         self.seed, self.config = seed, config
+        self.named = named_tasks(config.cells) if config.cells else None
         self.params: Any = None
         self.version = -1
         self.searches = 0
@@ -171,7 +172,7 @@ class GuideActor:
             if guided
             else None
         )
-        labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide)
+        labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide, self.named)
         self.searches += 1
         target = value_target(labelled, self.config.label)
         counts = ray.get(buffer.add.remote(labelled.window, labelled.features, target, labelled.group))

@@ -36,6 +36,7 @@ from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
 from rllock.files.provenance import provenance
+from rllock.search.curriculum import named_tasks
 from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
 
@@ -89,6 +90,8 @@ def resume_config(logdir: Path, minutes: float, actors: int, address: str | None
 
 def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
     config.validate()
+    if config.cells:
+        named_tasks(config.cells)  # a bad cell is one line here, not an actor's traceback
     logdir = Path(config.logdir)
     if not resume and ckpt.saved_steps(logdir / "checkpoints"):
         raise RLLockError(f"{logdir} already holds a guide run; resume it with --resume {logdir}")

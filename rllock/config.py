@@ -357,6 +357,9 @@ class GuideTrainConfig:
     """The curriculum's largest random shape."""
     max_pieces: int = 150
     """The curriculum's largest K (pieces have at least 4 voxels, K at least 5)."""
+    cells: str = ""
+    """Instead of the random curriculum, only these tasks, as `rllock bench guide --cells` writes them
+    (mario:60,desia-bunny:80:path): a guide taught the tasks a user cannot solve."""
     buffer_capacity: int = 200_000
     """States kept; the oldest are overwritten."""
     batch_size: int = 256

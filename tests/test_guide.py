@@ -23,7 +23,7 @@ from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files import orbax_io
 from rllock.search.base import derive_seed
-from rllock.search.curriculum import blob, draw_task
+from rllock.search.curriculum import blob, draw_task, named_tasks
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide, read_guide_metadata
 from rllock.search.solver import (
@@ -356,6 +356,25 @@ def test_the_curriculum_draws_feasible_varied_tasks():
     assert grid.sum() == 300 and is_connected(grid)
 
 
+def test_named_cells_replace_the_curriculum_and_bad_ones_are_one_line_errors():
+    named = named_tasks("cube4:9, desia-bunny:80:path")
+    assert [(t.shape_name, t.pieces, t.removal) for t in named] == [
+        ("cube4:9", 9, "straight"),
+        ("desia-bunny:80:path", 80, "path"),
+    ]
+    drawn = {draw_task(np.random.default_rng([5, i]), GuideTrainConfig(), named).shape_name for i in range(20)}
+    assert drawn == {"cube4:9", "desia-bunny:80:path"}
+    for spec, message in [
+        ("", "--cells is empty"),
+        ("cube4", "bad cell 'cube4'"),
+        ("nosuchshape:9", "nosuchshape"),
+        ("cube4:40", "cannot have a valid assembly"),
+    ]:
+        with pytest.raises(RLLockError, match=message) as error:
+            named_tasks(spec)
+        assert "\n" not in str(error.value)
+
+
 def test_the_guide_learner_fits_the_buffers_targets_and_orders_siblings():
     buffer = GuideBuffer(64, 8)
     rng = np.random.default_rng(0)
@@ -565,8 +584,9 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     run = tmp_path / "run"
+    # The curriculum of two named tasks (`--cells`), which the resumed run keeps.
     small = ["--search-seconds", "2", "--batch-size", "16", "--buffer-capacity", "4000", "--actors", "1",
-             "--max-voxels", "300", "--max-pieces", "20", "--guide-features", "4,8", "--guide-hidden", "16",
+             "--cells", "cube4:7,cube5:12", "--guide-features", "4,8", "--guide-hidden", "16",
              "--publish-every", "5", "--checkpoint-minutes", "0.2",
              # One cheap rollout per child: the first labels reach the learner within its 36 s on a slow,
              # loaded VM too (three rollouts of 512 expansions each did not, once).
@@ -578,6 +598,8 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     # most of 0.6 minutes, and the run ended before its first learner step.
     code, out, err = run_cli("train-guide", "--minutes", "1", "--logdir", str(run), *small, timeout=240)
     assert code == 0, err
+    searched = set(re.findall(r"search \d+ \((\S+) K=", err))
+    assert searched and searched <= {"cube4:7", "cube5:12"}, searched
     # The final checkpoint is skipped when the last periodic one already holds the same step and searches.
     saved = re.findall(r"checkpoint at learner step \d+ \(\d+ searches", err)
     assert saved and len(saved) == len(set(saved)), saved
@@ -602,3 +624,4 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     assert again[-1] >= steps[-1] and again != steps
     resumed = read_guide_metadata(run / "checkpoints" / str(again[-1]))["config"]
     assert resumed["actors"] == 2 and resumed["search_seconds"] == 2
+    assert set(re.findall(r"search \d+ \((\S+) K=", err)) <= {"cube4:7", "cube5:12"}

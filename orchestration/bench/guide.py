@@ -19,8 +19,8 @@ import jax
 from orchestration.bench.arms import warm_process
 from orchestration.bench.shapes import Cell, solver_cell
 from orchestration.bench.specs import parse_list
-from rllock.core.env import Task, initial_state, make_task
-from rllock.errors import RLLockError
+from rllock.core.env import initial_state
+from rllock.search.curriculum import NamedTask, parse_named_task
 from rllock.search.guide import Guide, init_guide
 from rllock.search.solver import SearchConfig
 
@@ -29,48 +29,19 @@ log = logging.getLogger(__name__)
 ARMS = ("solver", "guided", "untrained")
 
 
-@dataclass(frozen=True)
-class GuideCell:
-    label: str
-    shape: str
-    pieces: int
-    removal: str
-    resolution: int | None
-
-    def task(self) -> Task:
-        return make_task(self.shape, self.pieces, self.removal, resolution=self.resolution, name=self.label)
-
-
-def parse_cells(spec: str) -> list[GuideCell]:
-    return parse_list(spec, [], _cell, "--cells")
-
-
-def _cell(item: str) -> GuideCell:
-    parts = item.split(":")
-    removal = "straight"
-    if parts[-1] in ("path", "straight"):
-        removal = parts.pop()
-    if len(parts) < 2 or not parts[-1].isdigit():
-        raise RLLockError(f"bad cell {item!r}: use SHAPE:K or SHAPE:K:path (a mesh as FILE@RESOLUTION:K)")
-    shape, pieces = ":".join(parts[:-1]), int(parts[-1])
-    resolution = None
-    if "@" in shape:
-        shape, _, res = shape.rpartition("@")
-        if not res.isdigit():
-            raise RLLockError(f"bad resolution in cell {item!r}: use FILE@RESOLUTION:K")
-        resolution = int(res)
-    return GuideCell(item, shape, pieces, removal, resolution)
+def parse_cells(spec: str) -> list[NamedTask]:
+    return parse_list(spec, [], parse_named_task, "--cells")
 
 
 @dataclass(frozen=True)
 class GuideRow:
-    cell: GuideCell
+    cell: NamedTask
     voxels: int
     arms: dict[str, list[Cell]]  # by arm, one per seed
 
 
 def bench_guide(
-    cells: list[GuideCell],
+    cells: list[NamedTask],
     guide: Guide,
     *,
     seeds: list[int],

@@ -1,5 +1,6 @@
 """The guide network's curriculum (`rllock train-guide`): a task per search, drawn from random compact
-shapes and shipped shapes, with K from 5 to `max_pieces` and both removal modes.
+shapes and shipped shapes, with K from 5 to `max_pieces` and both removal modes; or, with `--cells`,
+drawn from the tasks named there (a guide taught the one task a user cannot solve).
 
 Pieces have 4 to 40 voxels (n drawn log-uniformly, so that small pieces, where searches fail, are as
 common as large ones), and K = N // n within [5, max_pieces]. mario and spider, the shapes the
@@ -9,20 +10,68 @@ zero-shot; so are their meshes.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from rllock.config import GuideTrainConfig
 from rllock.core.env import Task, make_task
-from rllock.core.feasibility import impossibility
+from rllock.core.feasibility import check_feasible, impossibility
 from rllock.core.shapes import crop, load_shape
+from rllock.errors import RLLockError
 
 SHAPES = ("cube4", "cube5", "cube6", "ring", "stairs", "tube", "sofa", "bunny", "shelf", "cubeweird",
           "desia-bunny", "desia-dog", "box:10x8x6", "box:12x12x3")  # fmt: skip
 PATH_SHARE = 0.3  # of the tasks use DESIA's path removal
 
 
-def draw_task(rng: np.random.Generator, config: GuideTrainConfig) -> Task:
-    """A feasible task of the curriculum (module docstring)."""
+@dataclass(frozen=True)
+class NamedTask:
+    """A task as `rllock bench guide --cells` and `train-guide --cells` write it: SHAPE:K or SHAPE:K:path,
+    SHAPE a shape name, a .puz/.vol/.npy file, or a mesh with @RESOLUTION (bunny.stl@24:40)."""
+
+    label: str
+    shape: str
+    pieces: int
+    removal: str
+    resolution: int | None
+
+    def task(self) -> Task:
+        return make_task(self.shape, self.pieces, self.removal, resolution=self.resolution, name=self.label)
+
+
+def parse_named_task(item: str) -> NamedTask:
+    parts = item.split(":")
+    removal = "straight"
+    if parts[-1] in ("path", "straight"):
+        removal = parts.pop()
+    if len(parts) < 2 or not parts[-1].isdigit():
+        raise RLLockError(f"bad cell {item!r}: use SHAPE:K or SHAPE:K:path (a mesh as FILE@RESOLUTION:K)")
+    shape, pieces = ":".join(parts[:-1]), int(parts[-1])
+    resolution = None
+    if "@" in shape:
+        shape, _, res = shape.rpartition("@")
+        if not res.isdigit():
+            raise RLLockError(f"bad resolution in cell {item!r}: use FILE@RESOLUTION:K")
+        resolution = int(res)
+    return NamedTask(item, shape, pieces, removal, resolution)
+
+
+def named_tasks(spec: str) -> list[Task]:
+    """The tasks of `--cells` (comma-separated `NamedTask`s), each checked: a clear error for a shape
+    that cannot be loaded or a task that has no assembly."""
+    tasks = [parse_named_task(item.strip()).task() for item in spec.split(",") if item.strip()]
+    if not tasks:
+        raise RLLockError("--cells is empty: give tasks like mario:60,desia-bunny:80:path")
+    for task in tasks:
+        check_feasible(task)
+    return tasks
+
+
+def draw_task(rng: np.random.Generator, config: GuideTrainConfig, named: list[Task] | None = None) -> Task:
+    """A feasible task of the curriculum (module docstring): one of `named` when there are any."""
+    if named:
+        return named[int(rng.integers(len(named)))]
     while True:
         if rng.random() < 0.5:
             name = str(SHAPES[rng.integers(len(SHAPES))])
