@@ -21,6 +21,8 @@ from rllock.files.checkpoint import saved_steps
 ROOT = Path(__file__).resolve().parents[1]
 RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
 
+RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
+
 
 def _latest(logdir: Path) -> int:
     """The newest saved learner step, -1 before the first."""
@@ -94,8 +96,8 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
     )
     # The actors' first episodes wait for their compiled search: on a slow, busy machine (a 2-core VM
     # while the other test worker compiles too) that took more than 100 s, and on a fresh CI machine more
-    # than 240 s: the job runs from its uploaded copy of the repository, whose numba cache is empty (Ray
-    # leaves out what .gitignore names), so the driver and each node compile the search anew.
+    # than 240 s, when the job's uploaded copy of the repository compiled the search anew on each node.
+    # It now loads the install's compiled code (`rllock.core.numba_cache`); the wait stays generous.
     _wait_for("a learner step", lambda: _latest(logdir) >= 0, 600, logs)
 
     # A worker node dies (SIGKILL to its processes): the learner keeps stepping on the other.

@@ -5,11 +5,17 @@ limit."""
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 from numba.core.registry import CPUDispatcher
 
 from rllock.core import compiled_checkers, compiled_sampler, winding
 from rllock.core.env import candidates_many, initial_state, make_task, sample_accepted
+from rllock.core.numba_cache import CORE, CoreSourcesLocator, numba_cache_root, sources_digest
 from rllock.core.precompile import _layouts, compile_all
 from rllock.search.solver import solve
 
@@ -61,3 +67,42 @@ def test_after_the_precompile_the_search_mcts_and_ray_tables_compile_nothing_new
     sample_accepted(frozen, initial_state(frozen), seed=1, num_samples=16, closed_share=0.5)
     solve(frozen, time_limit=0.5, seed=0)
     assert _signatures() - before == set()
+
+
+def test_the_cache_is_per_user_and_per_version_of_the_core_sources(tmp_path):
+    """A copy of the sources elsewhere (a Ray job's unpacked working folder) has the same folder and
+    loads what was compiled; a change to any core file is a new folder."""
+    folder = numba_cache_root() / sources_digest(CORE)
+    assert compiled_sampler.sample_and_check_mixed.stats.cache_path == str(folder)
+    assert (
+        CoreSourcesLocator.from_function(
+            test_the_cache_is_per_user_and_per_version_of_the_core_sources, __file__
+        )
+        is None
+    )
+    copy = tmp_path / "rllock"
+    shutil.copytree(CORE.parent, copy, ignore=shutil.ignore_patterns("__pycache__", "data", "checkpoints"))
+    assert sources_digest(copy / "core") == sources_digest(CORE)
+    (copy / "core" / "shapes.py").write_text((CORE / "shapes.py").read_text() + "\n# changed\n")
+    sources_digest.cache_clear()
+    assert sources_digest(copy / "core") != sources_digest(CORE)
+    (copy / "core" / "shapes.py").write_text((CORE / "shapes.py").read_text())
+    sources_digest.cache_clear()
+    compile_all()  # the cache holds every entry point (it compiles only where sources changed since)
+    # The copy, imported in a new process instead of the installed package, compiles nothing.
+    script = f"""
+import sys
+sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in str(f).lower()]
+sys.path.insert(0, {str(tmp_path)!r})
+from rllock.core import compiled_sampler
+from rllock.core.precompile import compile_all
+assert compiled_sampler.__file__.startswith({str(tmp_path)!r}), compiled_sampler.__file__
+compile_all()
+stats = compiled_sampler.sample_and_check_mixed.stats
+print(stats.cache_path, sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    path, hits, misses = done.stdout.split()
+    assert Path(path) == folder and int(hits) > 0 and int(misses) == 0
+    assert not list((copy / "core").glob("__pycache__/*.nb*"))

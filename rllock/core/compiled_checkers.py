@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from rllock.core import numba_cache  # noqa: F401  (before any @njit: it picks the cache folder)
+
 CONNECTED, REMOVABLE, INTERLOCKING = 1, 2, 4
 ALL_CHECKS = CONNECTED | REMOVABLE | INTERLOCKING
 # Rows of `_contacts`' counts: an out row and its in row are one apart, so that a search against the

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from rllock.core import numba_cache  # noqa: F401  (before any @njit: it picks the cache folder)
 from rllock.core.compiled_checkers import ALL_CHECKS, check_chunk, prepare_node, scratch_arrays
 
 

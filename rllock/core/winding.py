@@ -18,6 +18,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from rllock.core import numba_cache  # noqa: F401  (before any @njit: it picks the cache folder)
+
 # A cluster is replaced by its dipole when the point is farther than BETA times its radius. Barill et
 # al. use 2 with a second-order expansion; the first-order dipole here needs more distance for the same
 # accuracy (measured: winding numbers within 0.01 of the exact ones on the test meshes).
