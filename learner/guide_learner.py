@@ -8,6 +8,12 @@ sibling loss: for pairs of children of one node with different targets, the cros
 difference of their logits against which target is higher. The search uses the guide to order siblings,
 and the first loss alone learns mostly a node's level (docs/benchmarks.md). Its step is a pure jitted
 function.
+
+One node in `HOLDOUT` (its children together) is never trained on: `judge` measures on those how often
+the network orders siblings rightly, against the same on nodes it trains on and against the lookahead
+share alone, so that a run shows in TensorBoard whether it learns what carries over or memorises (on
+nodes it never saw, the guides of docs/benchmarks.md ordered siblings at chance while ordering 74% of
+their own buffer's).
 """
 
 from __future__ import annotations
@@ -26,13 +32,21 @@ from rllock.config import GuideConfig
 from rllock.errors import RLLockError
 from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts
-from rllock.search.guide import CHANNELS, GLOBALS, GuideNet, init_guide
+from rllock.search.guide import CHANNELS, GLOBALS, PAD, GuideNet, guide_values, init_guide
+
+HOLDOUT = 10  # one node in this many is held out of training (by its number in the run)
+SHARE = GLOBALS - 1  # the feature that is the lookahead share (`rllock.search.guide._features`)
+
+
+def held_out(group: np.ndarray) -> np.ndarray:
+    return group % HOLDOUT == 0
 
 
 class GuideBuffer:
     """Encoded states, targets and sibling groups; the oldest are overwritten once `capacity` is
-    reached. A batch (`sample`) is pairs: its first half drawn uniformly, its second half a sibling of
-    each (`paired` says which pairs are siblings: a state whose siblings are all gone has none)."""
+    reached. A batch (`sample`) is pairs: its first half drawn uniformly among the states of nodes that
+    are not held out (`held_out`), its second half a sibling of each (`paired` says which pairs are
+    siblings: a state whose siblings are all gone has none)."""
 
     def __init__(self, capacity: int, window: int, channels: int = CHANNELS):
         self.capacity = capacity
@@ -61,14 +75,29 @@ class GuideBuffer:
     def sample(self, batch: int, seed: int) -> dict[str, np.ndarray]:
         """`batch` states (an even number): `batch // 2` uniform ones, then a random sibling of each."""
         rng = np.random.default_rng(seed)
-        first = rng.integers(0, self.size, size=batch // 2)
-        second, paired = siblings(self.group[: self.size], first, rng)
+        group = self.group[: self.size]
+        first = rng.choice(np.flatnonzero(~held_out(group)), size=batch // 2)
+        second, paired = siblings(group, first, rng)
         idx = np.concatenate([first, second])
         return {
             "window": self.window[idx],
             "features": self.features[idx],
             "target": self.target[idx],
             "paired": paired,
+        }
+
+    def nodes(self, held: bool, most: int, seed: int) -> dict[str, np.ndarray]:
+        """The states of at most `most` nodes, held out or trained on, drawn at random, siblings
+        together."""
+        group = self.group[: self.size]
+        chosen = np.unique(group[held_out(group) == held])
+        chosen = np.random.default_rng(seed).permutation(chosen)[:most]
+        idx = np.flatnonzero(np.isin(group, chosen))
+        return {
+            "window": self.window[idx],
+            "features": self.features[idx],
+            "target": self.target[idx],
+            "group": group[idx],
         }
 
     def counts(self) -> BufferCounts:
@@ -118,6 +147,41 @@ def siblings(group: np.ndarray, first: np.ndarray, rng: np.random.Generator) -> 
     pick = np.argmax(np.where(same, rng.random(same.shape), -1.0), axis=1)
     paired = same.any(axis=1)
     return np.where(paired, near[np.arange(len(first)), pick], first), paired
+
+
+def sibling_order(score: np.ndarray, target: np.ndarray, group: np.ndarray) -> tuple[float, int]:
+    """(the share of sibling pairs with different targets that `score` orders as the targets are
+    ordered, ties counting a half; how many such pairs)."""
+    same = group[:, None] == group[None, :]
+    apart = same & (target[:, None] > target[None, :])
+    pairs = int(apart.sum())
+    if not pairs:
+        return 0.5, 0
+    diff = score[:, None] - score[None, :]
+    right = (diff > 0).astype(np.float64) + 0.5 * (diff == 0)
+    return float(right[apart].sum() / pairs), pairs
+
+
+JUDGE_BATCH = 32 * PAD  # states per network call in `judge`: one batch shape, one compile
+
+
+def judge(params: dict, config: GuideConfig, nodes: dict[str, np.ndarray]) -> dict[str, float]:
+    """On `GuideBuffer.nodes`: the share of sibling pairs the network's value orders rightly
+    ("siblings"), the same for the lookahead share alone ("share"), how many pairs ("pairs"), and the
+    mean absolute error of the value against the target ("value_error")."""
+    n = len(nodes["target"])
+    values = np.zeros(n, np.float32)
+    for at in range(0, n, JUDGE_BATCH):
+        part = slice(at, min(at + JUDGE_BATCH, n))
+        window = np.zeros((JUDGE_BATCH, *nodes["window"].shape[1:]), np.int8)
+        features = np.zeros((JUDGE_BATCH, GLOBALS), np.float32)
+        window[: part.stop - at], features[: part.stop - at] = nodes["window"][part], nodes["features"][part]
+        values[part] = np.asarray(guide_values(params, window, features, config=config))[: part.stop - at]
+    target, group = nodes["target"], nodes["group"]
+    siblings_right, pairs = sibling_order(values, target, group)
+    share_right, _ = sibling_order(nodes["features"][:, SHARE], target, group)
+    error = float(np.abs(values - target).mean()) if n else 0.0
+    return {"siblings": siblings_right, "share": share_right, "pairs": float(pairs), "value_error": error}
 
 
 def guide_losses(params, config: GuideConfig, window, features, target, paired):

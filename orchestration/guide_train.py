@@ -5,7 +5,8 @@ weights version and push the children of a few states it left, labelled by rollo
 buffer actor
 (`learner.guide_learner.GuideBuffer`); this process learns from the buffer (at most `replay_ratio`
 sampled states per state produced), hands out a new weights version every `publish_every` steps, writes
-TensorBoard events and keeps:
+TensorBoard events (with, at each checkpoint, how well it orders the siblings of nodes held out of
+training: `learner.guide_learner.judge`) and keeps:
   LOGDIR/checkpoints/<step>/  the latest checkpoints (orbax: learner state + metadata)
   LOGDIR/replay.npz           the replay buffer, snapshotted with every checkpoint
 `--minutes` is a hard budget (searches under way at its end are dropped). `rllock train-guide --resume
@@ -29,7 +30,7 @@ from tensorboardX import SummaryWriter
 
 from actors.guide_actor import GuideActor, SearchReport
 from actors.selfplay import actor_env
-from learner.guide_learner import GuideBuffer, GuideLearner
+from learner.guide_learner import GuideBuffer, GuideLearner, judge
 from orchestration.pool import Calls, on_driver_node, start_ray
 from rllock.config import GuideTrainConfig, from_json
 from rllock.errors import RLLockError
@@ -41,6 +42,8 @@ from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
 
 log = logging.getLogger(__name__)
+
+JUDGED_NODES = 200  # nodes held out, and as many trained on, judged at each checkpoint
 
 
 @dataclass
@@ -277,7 +280,29 @@ class _GuideRun:
             return True
         return False
 
+    def _judge(self) -> None:
+        """How well the network orders siblings on nodes it never trained on, against nodes it trained on
+        and against the lookahead share alone (`learner.guide_learner.judge`), in TensorBoard and the log."""
+        step, found = self.learner.step, {}
+        for name, kept_out in (("heldout", True), ("trained", False)):
+            nodes = ray.get(self.buffer.nodes.remote(kept_out, JUDGED_NODES, step))
+            if not len(nodes["target"]):
+                return
+            found[name] = judge(self.learner.params, self.config.guide, nodes)
+            for key, value in found[name].items():
+                self.writer.add_scalar(f"{name}/{key}", value, step)
+        held, trained = found["heldout"], found["trained"]
+        log.info(
+            "siblings ordered rightly on held-out nodes: %.1f%% by the guide, %.1f%% by the lookahead share "
+            "(%d pairs); on nodes it trains on: %.1f%%",
+            100 * held["siblings"],
+            100 * held["share"],
+            held["pairs"],
+            100 * trained["siblings"],
+        )
+
     def _checkpoint(self) -> None:
+        self._judge()
         ray.get(self.buffer.snapshot.remote(str(self.logdir / "replay.npz")))
         doc = guide_metadata(self.config, self.learner.step, asdict(self.counters), self.sessions)
         orbax_io.save(self.manager, self.learner.step, self.learner.state(), doc)

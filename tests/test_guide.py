@@ -16,7 +16,16 @@ import pytest
 from helpers import run_cli
 
 from actors.guide_actor import Probes, label_children, value_target
-from learner.guide_learner import SIBLINGS_WITHIN, GuideBuffer, GuideLearner, siblings
+from learner.guide_learner import (
+    SHARE,
+    SIBLINGS_WITHIN,
+    GuideBuffer,
+    GuideLearner,
+    held_out,
+    judge,
+    sibling_order,
+    siblings,
+)
 from rllock.config import GuideConfig, GuideTrainConfig, to_json
 from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
 from rllock.core.verifier import verify_labels
@@ -24,7 +33,7 @@ from rllock.errors import RLLockError
 from rllock.files import orbax_io
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task, named_tasks
-from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, init_guide
+from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, guide_values, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide, read_guide_metadata
 from rllock.search.solver import (
     Child,
@@ -37,6 +46,7 @@ from rllock.search.solver import (
     solve,
 )
 
+RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
 
@@ -362,7 +372,8 @@ def test_named_cells_replace_the_curriculum_and_bad_ones_are_one_line_errors():
         ("cube4:9", 9, "straight"),
         ("desia-bunny:80:path", 80, "path"),
     ]
-    drawn = {draw_task(np.random.default_rng([5, i]), GuideTrainConfig(), named).shape_name for i in range(20)}
+    config = GuideTrainConfig()
+    drawn = {draw_task(np.random.default_rng([5, i]), config, named).shape_name for i in range(20)}
     assert drawn == {"cube4:9", "desia-bunny:80:path"}
     for spec, message in [
         ("", "--cells is empty"),
@@ -418,6 +429,53 @@ def test_sibling_pairs_are_drawn_from_the_ring_as_a_brute_force_search_finds_the
     for a in range(50):
         mates = {j for j in range(50) if j != a and group[j] == group[a] and abs(j - a) < SIBLINGS_WITHIN}
         assert drawn[a] == (mates or {a}), a
+
+
+def _brute_sibling_order(score, target, group) -> tuple[float, int]:
+    right = pairs = 0.0
+    for i in range(len(target)):
+        for j in range(len(target)):
+            if group[i] == group[j] and target[i] > target[j]:
+                pairs += 1
+                right += 1.0 if score[i] > score[j] else 0.5 if score[i] == score[j] else 0.0
+    return (right / pairs if pairs else 0.5), int(pairs)
+
+
+def test_held_out_nodes_are_never_trained_on_and_are_judged_as_a_brute_force_count_finds():
+    rng = np.random.default_rng(4)
+    buffer = GuideBuffer(400, 8)
+    sizes = rng.integers(1, 9, size=40)
+    local = np.repeat(np.arange(40), sizes)
+    n = len(local)
+    features = rng.random((n, GLOBALS)).astype(np.float32)
+    features[: n // 2, SHARE] = np.round(features[: n // 2, SHARE], 1)  # ties
+    target = np.round(rng.random(n), 1).astype(np.float32)
+    window = rng.integers(0, 2, size=(n, 8, 8, 8, CHANNELS)).astype(np.int8)
+    buffer.add(window, features, target, local)
+    group = buffer.group[:n]
+    for seed in range(50):
+        batch = buffer.sample(32, seed)
+        drawn = [np.flatnonzero((features == row).all(axis=1))[0] for row in batch["features"]]
+        assert not held_out(group[drawn]).any()
+    for kept_out, most in ((True, 100), (False, 7)):
+        nodes = buffer.nodes(kept_out, most, 0)
+        chosen = np.unique(nodes["group"])
+        available = np.unique(group[held_out(group) == kept_out])
+        assert (held_out(chosen) == kept_out).all() and len(chosen) == min(most, len(available))
+        assert len(nodes["target"]) == np.isin(group, chosen).sum()  # every sibling of a chosen node
+    nodes = buffer.nodes(False, 40, 0)
+    params = init_guide(CONFIG, jax.random.PRNGKey(5))
+    found = judge(params, CONFIG, nodes)
+    values = np.asarray(guide_values(params, nodes["window"], nodes["features"], config=CONFIG))
+    right, pairs = _brute_sibling_order(values, nodes["target"], nodes["group"])
+    assert found["siblings"] == pytest.approx(right, abs=1e-9) and found["pairs"] == pairs > 50
+    share = _brute_sibling_order(nodes["features"][:, SHARE], nodes["target"], nodes["group"])[0]
+    assert found["share"] == pytest.approx(share, abs=1e-9)
+    assert found["value_error"] == pytest.approx(np.abs(values - nodes["target"]).mean(), rel=1e-5)
+    for trial in range(20):
+        r = np.random.default_rng(trial)
+        score, tgt, grp = np.round(r.random(12), 1), np.round(r.random(12), 1), r.integers(0, 3, 12)
+        assert sibling_order(score, tgt, grp) == pytest.approx(_brute_sibling_order(score, tgt, grp))
 
 
 def test_the_sibling_loss_matches_a_direct_computation():
@@ -607,9 +665,10 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     assert steps and steps[-1] > 0 and (run / "replay.npz").exists()
     events = EventAccumulator(str(run))
     events.Reload()
-    assert {"losses/value", "losses/siblings", "search/solved", "buffer/size"} <= set(
-        events.Tags()["scalars"]
-    )
+    # Each checkpoint judges the siblings of nodes held out of training (and of nodes trained on).
+    assert {"losses/value", "losses/siblings", "search/solved", "buffer/size", "heldout/siblings",
+            "heldout/share", "trained/siblings"} <= set(events.Tags()["scalars"])  # fmt: skip
+    assert "siblings ordered rightly on held-out nodes" in err
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
