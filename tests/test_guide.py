@@ -40,6 +40,7 @@ from rllock.search.solver import (
     SearchConfig,
     SearchStats,
     _backjump,
+    _guided,
     expand,
     rollout_reach,
     search,
@@ -313,6 +314,25 @@ def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
     # The untrained guide's own order is another search.
     ordered = next(search(task, seed=1, time_limit=120, guide=_untrained()))
     assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
+
+
+def test_demoting_puts_off_the_children_valued_clearly_below_the_best_and_keeps_each_parts_order():
+    task = make_task("cube4", 6)
+    kids = [Child(State(initial_state(task).labels, 1), None, share) for share in (0.1, 0.2, 0.3, 0.4, 0.5)]
+
+    class Valued:
+        horizon = 20
+
+        def values(self, task, states, shares):
+            return np.array([0.9, 0.2, 0.7, 0.85, 0.1], np.float32)
+
+    def order(demote_by: float) -> list[float]:
+        config = SearchConfig(guide_orders=False, demote_by=demote_by)
+        return [c.share for c in _guided(task, kids, Valued(), config)]
+
+    # Pop order, best last: the demoted (valued 0.2 and 0.1) first, each part as the search had it.
+    assert order(0.25) == [0.2, 0.5, 0.1, 0.3, 0.4]
+    assert order(0.9) == [0.1, 0.2, 0.3, 0.4, 0.5]  # none clearly worse: the search's own order
 
 
 def _path(values: list[float | None], target: int = 20) -> list[Child]:

@@ -100,6 +100,13 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         help="the guided arms keep the search's own order of children; the values only judge "
         "(SearchConfig.guide_orders False)",
     )
+    p.add_argument(
+        "--demote-by",
+        type=positive_float,
+        default=None,
+        help="with --keep-order: children valued more than this below their best sibling are tried after "
+        "the others (SearchConfig.demote_by)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 

@@ -375,7 +375,11 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         if not 0.0 <= args.abandon_below <= 1.0:
             raise RLLockError(f"--abandon-below is a value in [0, 1], got {args.abandon_below}")
         config = replace(config, abandon_below=args.abandon_below)
-    config = replace(config, backjump=args.backjump, guide_orders=not args.keep_order)
+    if args.demote_by is not None and not args.keep_order:
+        raise RLLockError("--demote-by goes with --keep-order (the search's own order, less the demoted)")
+    config = replace(
+        config, backjump=args.backjump, guide_orders=not args.keep_order, demote_by=args.demote_by
+    )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit, config=config)
     if args.json:

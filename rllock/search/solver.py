@@ -123,6 +123,10 @@ class SearchConfig:
     guide_orders: bool = True
     """With a guide network: its values (and the lookahead share, `guide_count_weight`) order the
     children; False keeps the search's own order and uses the values only to backjump."""
+    demote_by: float | None = None
+    """With a guide network and `guide_orders` False: a node's children valued more than this below its
+    best child's value are tried after the others, each part in the search's own order (the solver's
+    judgement stays first; the network only puts off the children it judges clearly worse)."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
@@ -496,14 +500,17 @@ def _guided(task: Task, children: list[Child], guide: Guide, config: SearchConfi
     """`children` in pop order by the guide's values plus
     `config.guide_count_weight` times their lookahead share, best last, without those valued below
     `config.prune_below` (never all, unless every one is valued below `config.abandon_below`). Each
-    carries its value (for `_backjump`); with `config.guide_orders` False they keep their order and
-    none is pruned."""
+    carries its value (for `_backjump`); with `config.guide_orders` False they keep their order (less
+    those `config.demote_by` puts off) and none is pruned."""
     values = guide.values(task, [c.state for c in children], [c.share for c in children])
     if values.max() < config.abandon_below:
         return []
     children = [c._replace(value=float(v)) for c, v in zip(children, values)]
     if not config.guide_orders:
-        return children
+        if config.demote_by is None:
+            return children
+        worse = values < values.max() - config.demote_by
+        return [c for c, w in zip(children, worse) if w] + [c for c, w in zip(children, worse) if not w]
     score = [values[i] + config.guide_count_weight * c.share for i, c in enumerate(children)]
     order = sorted(range(len(children)), key=lambda i: (score[i], i))
     kept = [children[i] for i in order if values[i] >= config.prune_below]
