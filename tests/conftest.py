@@ -22,12 +22,11 @@ def data() -> Path:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under xdist (`scripts/test.sh`), the tests that start Ray run one after another within a group,
-    on one worker: the "ray" group holds the runs whose time limits are asserted (hard budgets, signals,
-    a quiet run), which a second Ray instance beside them could push past their slack. A module may
-    name a group of its own (`RAY_GROUP`) for tests that make no timing claim: "ray-cluster" (the
-    multi-node job, the scaling preset, train-guide, solve on a cluster) and the service's tests, each
-    run in turn beside the "ray" group on another worker. xdist's loadgroup reads a group from the test
+    """Under xdist (`scripts/test.sh` runs two workers), the tests that start Ray run one after another
+    on one worker: two Ray instances at once would fight over the machine's cores and make their timing
+    tests flaky, while the other tests fill the other worker. A module may name a group of its own
+    (`RAY_GROUP`): the service's tests, which start one Ray instance for the whole module and make
+    no timing claims, go to whichever worker is free. xdist's loadgroup reads a group from the test
     id's "@group" suffix, which xdist 3.8 writes where pytest 9 no longer keeps the id (`_nodeid`, not
     `_id`): the suffix is set here."""
     from _pytest.nodeid import coerce_node_id

@@ -10,8 +10,6 @@ from helpers import run_cli
 
 from orchestration.bench.scaling import PRESETS, fit_to_machine
 
-RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
-
 
 def test_the_plan_fits_the_machine_it_runs_on():
     workstation = PRESETS["workstation"]

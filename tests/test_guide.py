@@ -47,7 +47,6 @@ from rllock.search.solver import (
     solve,
 )
 
-RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
 

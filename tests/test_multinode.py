@@ -21,8 +21,6 @@ from rllock.files.checkpoint import saved_steps
 ROOT = Path(__file__).resolve().parents[1]
 RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
 
-RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
-
 
 def _latest(logdir: Path) -> int:
     """The newest saved learner step, -1 before the first."""

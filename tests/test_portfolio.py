@@ -23,8 +23,6 @@ from rllock.search import portfolio, solver
 from rllock.search.portfolio import portfolio_search, shares_cores, worker_seed
 from rllock.search.solver import SamplingPool, SearchStats, search
 
-RAY_GROUP = "ray-cluster"  # tests/conftest.py: its Ray test may run beside those of the "ray" group
-
 
 def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed():
     task = make_task("cube4", 7)
