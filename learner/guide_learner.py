@@ -149,17 +149,25 @@ def siblings(group: np.ndarray, first: np.ndarray, rng: np.random.Generator) -> 
     return np.where(paired, near[np.arange(len(first)), pick], first), paired
 
 
-def sibling_order(score: np.ndarray, target: np.ndarray, group: np.ndarray) -> tuple[float, int]:
-    """(the share of sibling pairs with different targets that `score` orders as the targets are
-    ordered, ties counting a half; how many such pairs)."""
-    same = group[:, None] == group[None, :]
-    apart = same & (target[:, None] > target[None, :])
-    pairs = int(apart.sum())
-    if not pairs:
-        return 0.5, 0
-    diff = score[:, None] - score[None, :]
-    right = (diff > 0).astype(np.float64) + 0.5 * (diff == 0)
-    return float(right[apart].sum() / pairs), pairs
+def sibling_order(
+    score: np.ndarray, target: np.ndarray, group: np.ndarray, gap: float = 0.0
+) -> tuple[float, int]:
+    """(the share of sibling pairs whose targets differ by more than `gap` that `score` orders as the
+    targets are ordered, ties counting a half; how many such pairs). Siblings sorted together are
+    compared at each offset in turn: time and memory grow with the states times the largest group."""
+    order = np.argsort(group, kind="stable")
+    g, s, t = group[order], score[order], target[order]
+    right, pairs = 0.0, 0
+    for k in range(1, len(g)):
+        same = g[k:] == g[:-k]
+        if not same.any():  # groups are contiguous once sorted: none farther apart either
+            break
+        dt = t[k:] - t[:-k]
+        apart = same & (np.abs(dt) > gap)
+        d = (s[k:] - s[:-k])[apart] * dt[apart]
+        right += float((d > 0).sum() + 0.5 * (d == 0).sum())
+        pairs += int(apart.sum())
+    return (right / pairs if pairs else 0.5), pairs
 
 
 JUDGE_BATCH = 32 * PAD  # states per network call in `judge`: one batch shape, one compile

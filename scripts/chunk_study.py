@@ -22,8 +22,9 @@ import logging
 import time
 
 import numpy as np
-from guide_siblings import mid_node, pairs_right
+from guide_siblings import mid_node
 
+from learner.guide_learner import sibling_order
 from rllock.config import GuideTrainConfig
 from rllock.core import compiled_sampler as sampler
 from rllock.core.env import State, Task, apply_chunk, sample_accepted
@@ -195,13 +196,13 @@ def judge(paths: list[str]) -> None:
     )
     print("|---|---|---|---|---|")
     for name, s in singles.items():
-        a, n = pairs_right(s, won, group, 0.0)
-        b, m = pairs_right(s, reach, group, 0.0)
+        a, n = sibling_order(s, won, group, 0.0)
+        b, m = sibling_order(s, reach, group, 0.0)
         top = []
         for g in nodes:
             idx = np.flatnonzero(group == g)
             top.append(won[idx[np.argsort(-s[idx], kind="stable")[:8]]].mean())
-        c, q = pairs_right(s[kept], won[kept], group[kept], 0.0)
+        c, q = sibling_order(s[kept], won[kept], group[kept], 0.0)
         print(f"| {name} | {a:.1%} of {n} | {b:.1%} of {m} | {np.mean(top):.3f} | {c:.1%} of {q} |")
 
 

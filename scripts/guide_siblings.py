@@ -34,7 +34,7 @@ import numpy as np
 import optax
 
 from actors.guide_actor import label_children
-from learner.guide_learner import guide_step, siblings
+from learner.guide_learner import guide_step, sibling_order, siblings
 from rllock.config import GuideConfig, GuideTrainConfig
 from rllock.core.env import State, Task
 from rllock.search.curriculum import draw_task
@@ -92,24 +92,6 @@ def rollouts(out: str, groups: int, rollouts_per: int, expansions: int, seed: in
         np.savez_compressed(out, **{k: np.asarray(v) for k, v in rows.items()})
 
 
-def pairs_right(score: np.ndarray, target: np.ndarray, group: np.ndarray, gap: float) -> tuple[float, int]:
-    """Share of sibling pairs whose targets differ by more than `gap` that `score` orders as the targets
-    do (ties count half)."""
-    right, total = 0.0, 0
-    order = np.argsort(group, kind="stable")
-    g, s, t = group[order], score[order], target[order]
-    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    for a, b in zip(starts, np.r_[starts[1:], len(g)]):
-        for i in range(a, b):
-            for j in range(i + 1, b):
-                if abs(t[i] - t[j]) <= gap:
-                    continue
-                total += 1
-                d = (s[i] - s[j]) * (t[i] - t[j])
-                right += 1.0 if d > 0 else 0.5 if d == 0 else 0.0
-    return right / max(total, 1), total
-
-
 def fit(paths: list[str], steps: int, label: str, rank_weight: float, seed: int) -> None:
     data = [np.load(p) for p in paths]
     d = {
@@ -156,10 +138,10 @@ def fit(paths: list[str], steps: int, label: str, rank_weight: float, seed: int)
     for name, score in (("lookahead share", share), ("network value", values), ("value + 0.5 share",
                         values + 0.5 * share)):  # fmt: skip
         for gap in (0.0, 0.2):
-            right, total = pairs_right(score, target, group, gap)
+            right, total = sibling_order(score, target, group, gap)
             log.info("held out: %-18s orders %.1f%% of %d sibling pairs (targets apart by more than %.1f)"
                      " rightly", name, 100 * right, total, gap)  # fmt: skip
-        right, total = pairs_right(score[lost], target[lost], group[lost], 0.0)
+        right, total = sibling_order(score[lost], target[lost], group[lost], 0.0)
         log.info("held out: %-18s orders %.1f%% of %d sibling pairs on nodes no child of which won",
                  name, 100 * right, total)  # fmt: skip
     log.info("held out: mean |value - target| %.3f (predicting the mean: %.3f)",
@@ -178,7 +160,7 @@ def retest(paths: list[str]) -> None:
              len(group), len(nodes), reach.shape[1], half, len(np.unique(group[lost])))  # fmt: skip
     for name, label in (("won", lambda r: (r == 1.0).mean(axis=1)), ("reach", lambda r: r.mean(axis=1))):
         for where, mask in (("every node", np.ones(len(group), bool)), ("no rollout won", lost)):
-            right, total = pairs_right(label(a)[mask], label(b)[mask], group[mask], 0.0)
+            right, total = sibling_order(label(a)[mask], label(b)[mask], group[mask], 0.0)
             log.info("%-5s on %-14s: half A orders %.1f%% of %d sibling pairs half B tells apart as B does",
                      name, where, 100 * right, total)  # fmt: skip
 
@@ -204,7 +186,7 @@ def judge(run: str, paths: list[str], label: str) -> None:
              np.abs(target - target.mean()).mean())  # fmt: skip
     for name, score in (("lookahead share", share), ("network value", values), ("value + 0.5 share",
                         values + 0.5 * share)):  # fmt: skip
-        right, total = pairs_right(score, target, group, 0.0)
+        right, total = sibling_order(score, target, group, 0.0)
         log.info(
             "%-18s orders %.1f%% of %d sibling pairs with different labels rightly", name, 100 * right, total
         )

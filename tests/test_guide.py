@@ -450,11 +450,11 @@ def test_sibling_pairs_are_drawn_from_the_ring_as_a_brute_force_search_finds_the
         assert drawn[a] == (mates or {a}), a
 
 
-def _brute_sibling_order(score, target, group) -> tuple[float, int]:
+def _brute_sibling_order(score, target, group, gap: float = 0.0) -> tuple[float, int]:
     right = pairs = 0.0
     for i in range(len(target)):
         for j in range(len(target)):
-            if group[i] == group[j] and target[i] > target[j]:
+            if group[i] == group[j] and target[i] - target[j] > gap:
                 pairs += 1
                 right += 1.0 if score[i] > score[j] else 0.5 if score[i] == score[j] else 0.0
     return (right / pairs if pairs else 0.5), int(pairs)
@@ -491,10 +491,12 @@ def test_held_out_nodes_are_never_trained_on_and_are_judged_as_a_brute_force_cou
     share = _brute_sibling_order(nodes["features"][:, SHARE], nodes["target"], nodes["group"])[0]
     assert found["share"] == pytest.approx(share, abs=1e-9)
     assert found["value_error"] == pytest.approx(np.abs(values - nodes["target"]).mean(), rel=1e-5)
-    for trial in range(20):
+    for trial in range(40):
         r = np.random.default_rng(trial)
-        score, tgt, grp = np.round(r.random(12), 1), np.round(r.random(12), 1), r.integers(0, 3, 12)
-        assert sibling_order(score, tgt, grp) == pytest.approx(_brute_sibling_order(score, tgt, grp))
+        size, gap = int(r.integers(1, 40)), float(r.choice([0.0, 0.2]))
+        score, tgt, grp = np.round(r.random(size), 1), np.round(r.random(size), 1), r.integers(0, 5, size)
+        expected = _brute_sibling_order(score, tgt, grp, gap)
+        assert sibling_order(score, tgt, grp, gap) == pytest.approx(expected), trial
 
 
 def test_the_sibling_loss_matches_a_direct_computation():
