@@ -77,15 +77,18 @@ class GuideResult:
     stop_signal: int | None
 
 
-def resume_config(logdir: Path, minutes: float, actors: int, address: str | None) -> GuideTrainConfig:
-    """The config of the guide run in `logdir`, from its newest readable checkpoint, with `minutes` more,
-    on this machine: `actors` and `address` are where the run goes on (a run begun on a workstation goes
-    on on a laptop), not what it learns."""
+def resume_config(
+    logdir: Path, minutes: float, actors: int, address: str | None, max_learner_steps: int | None = None
+) -> GuideTrainConfig:
+    """The config of the guide run in `logdir`, from its newest readable checkpoint, with `minutes` more
+    and a new step limit (none: only the minutes), on this machine: `actors` and `address` are where the
+    run goes on (a run begun on a workstation goes on on a laptop), not what it learns."""
     doc = ckpt.newest_readable(logdir, read_guide_metadata)
     return dataclasses.replace(
         from_json(GuideTrainConfig, doc["config"]),
         logdir=str(logdir),
         minutes=minutes,
+        max_learner_steps=max_learner_steps,
         actors=actors,
         address=address,
     )
@@ -201,7 +204,7 @@ class _GuideRun:
             self.logdir,
         )
         base, start, last_checkpoint = c.seconds, time.monotonic(), time.monotonic()
-        while not self.interrupted and time.monotonic() < deadline:
+        while not self.interrupted and time.monotonic() < deadline and not self._reached_max():
             self._turn(deadline)
             c.seconds = base + time.monotonic() - start
             if time.monotonic() - last_checkpoint >= 60 * config.checkpoint_minutes:
@@ -220,6 +223,10 @@ class _GuideRun:
             self.interrupted,
             self.stop_signal,
         )
+
+    def _reached_max(self) -> bool:
+        limit = self.config.max_learner_steps
+        return limit is not None and self.learner.step >= limit
 
     def _turn(self, deadline: float) -> None:
         """Collect finished searches (waiting up to 1 s for one when the learner may not step), hand their

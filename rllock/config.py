@@ -320,6 +320,8 @@ class GuideTrainConfig:
 
     minutes: float = 10.0
     """Wall-clock budget, a hard limit (on resume: the time to add)."""
+    max_learner_steps: int | None = None
+    """Stop after this many learner steps in all (default: only the time budget stops the run)."""
     logdir: str = "runs/guide"
     """Checkpoints, the replay snapshot and TensorBoard events go here."""
     seed: int = 0
@@ -393,6 +395,8 @@ class GuideTrainConfig:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
         if self.rank_weight < 0:
             raise RLLockError(f"--rank-weight must be >= 0, got {self.rank_weight}")
+        if self.max_learner_steps is not None and self.max_learner_steps < 1:
+            raise RLLockError(f"--max-learner-steps must be at least 1, got {self.max_learner_steps}")
         if self.batch_size % 2:
             raise RLLockError(f"--batch-size must be even (pairs of siblings), got {self.batch_size}")
         if self.actors < 0:

@@ -403,6 +403,8 @@ def test_named_cells_replace_the_curriculum_and_bad_ones_are_one_line_errors():
         with pytest.raises(RLLockError, match=message) as error:
             named_tasks(spec)
         assert "\n" not in str(error.value)
+    with pytest.raises(RLLockError, match="--max-learner-steps must be at least 1"):
+        GuideTrainConfig(max_learner_steps=0).validate()
 
 
 def test_the_guide_learner_fits_the_buffers_targets_and_orders_siblings():
@@ -693,15 +695,18 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     guide = load_guide(run)
     task = make_task("cube4", 7)
     assert verify_labels(solve(task, time_limit=60, guide=guide)[0], task.removal).valid
-    # Where the run goes on is this command's: two actors, not the one it began with.
+    # Where the run goes on is this command's: two actors, not the one it began with. It learns from the
+    # restored buffer at once and ends on its new step limit, well within the minutes.
+    limit = steps[-1] + 5
     code, out, err = run_cli(
-        "train-guide", "--resume", str(run), "--minutes", "0.5", "--actors", "2", timeout=240
-    )
+        "train-guide", "--resume", str(run), "--minutes", "1.5", "--actors", "2",
+        "--max-learner-steps", str(limit), timeout=240,
+    )  # fmt: skip
     assert code == 0, err
     assert f"resuming {run} at learner step {steps[-1]}" in err and "replay buffer restored" in err
+    assert out.startswith(f"train-guide: {limit} learner steps"), out
     again = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
-    # Learning goes on from the restored buffer.
-    assert again[-1] >= steps[-1] and again != steps
-    resumed = read_guide_metadata(run / "checkpoints" / str(again[-1]))["config"]
-    assert resumed["actors"] == 2 and resumed["search_seconds"] == 2
+    assert again[-1] == limit
+    resumed = read_guide_metadata(run / "checkpoints" / str(limit))["config"]
+    assert resumed["actors"] == 2 and resumed["search_seconds"] == 2 and resumed["max_learner_steps"] == limit
     assert set(re.findall(r"search \d+ \((\S+) K=", err)) <= {"cube4:7", "cube5:12"}

@@ -200,7 +200,9 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
     if args.resume:
         from orchestration.guide_train import resume_config
 
-        config = resume_config(Path(args.resume), args.minutes, args.actors, args.address)
+        config = resume_config(
+            Path(args.resume), args.minutes, args.actors, args.address, args.max_learner_steps
+        )
     else:
         config = from_flags(GuideTrainConfig, args)
     config.validate()
@@ -231,8 +233,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "--resume",
         metavar="LOGDIR",
         default=None,
-        help="continue the guide run in LOGDIR with its saved config; --minutes to add, and --actors and "
-        "--address say where it goes on",
+        help="continue the guide run in LOGDIR with its saved config; --minutes to add, --max-learner-steps "
+        "a new step limit, and --actors and --address say where it goes on",
     )
     p.set_defaults(func=cmd_train_guide)
 
