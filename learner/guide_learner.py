@@ -88,7 +88,8 @@ class GuideBuffer:
 
     def nodes(self, held: bool, most: int, seed: int) -> dict[str, np.ndarray]:
         """The states of at most `most` nodes, held out or trained on, drawn at random, siblings
-        together."""
+        together; "order" says when each came (the actors push a node's children in the search's pop
+        order, best last)."""
         group = self.group[: self.size]
         chosen = np.unique(group[held_out(group) == held])
         chosen = np.random.default_rng(seed).permutation(chosen)[:most]
@@ -98,6 +99,8 @@ class GuideBuffer:
             "features": self.features[idx],
             "target": self.target[idx],
             "group": group[idx],
+            # Oldest first: once the ring is full, its oldest state is at the cursor.
+            "order": (idx - self.cursor) % self.capacity if self.size == self.capacity else idx,
         }
 
     def counts(self) -> BufferCounts:
@@ -175,7 +178,8 @@ JUDGE_BATCH = 32 * PAD  # states per network call in `judge`: one batch shape, o
 
 def judge(params: dict, config: GuideConfig, nodes: dict[str, np.ndarray]) -> dict[str, float]:
     """On `GuideBuffer.nodes`: the share of sibling pairs the network's value orders rightly
-    ("siblings"), the same for the lookahead share alone ("share"), how many pairs ("pairs"), and the
+    ("siblings"), the same for the lookahead share alone ("share") and for the search's own order
+    ("search_order": what the guide must beat to be worth its cost), how many pairs ("pairs"), and the
     mean absolute error of the value against the target ("value_error")."""
     n = len(nodes["target"])
     values = np.zeros(n, np.float32)
@@ -188,8 +192,15 @@ def judge(params: dict, config: GuideConfig, nodes: dict[str, np.ndarray]) -> di
     target, group = nodes["target"], nodes["group"]
     siblings_right, pairs = sibling_order(values, target, group)
     share_right, _ = sibling_order(nodes["features"][:, SHARE], target, group)
+    order_right, _ = sibling_order(nodes["order"].astype(np.float64), target, group)
     error = float(np.abs(values - target).mean()) if n else 0.0
-    return {"siblings": siblings_right, "share": share_right, "pairs": float(pairs), "value_error": error}
+    return {
+        "siblings": siblings_right,
+        "share": share_right,
+        "search_order": order_right,
+        "pairs": float(pairs),
+        "value_error": error,
+    }
 
 
 def guide_losses(params, config: GuideConfig, window, features, target, paired):

@@ -300,9 +300,10 @@ class _GuideRun:
                 self.writer.add_scalar(f"{name}/{key}", value, step)
         held, trained = found["heldout"], found["trained"]
         log.info(
-            "siblings ordered rightly on held-out nodes: %.1f%% by the guide, %.1f%% by the lookahead share "
-            "(%d pairs); on nodes it trains on: %.1f%%",
+            "siblings ordered rightly on held-out nodes: %.1f%% by the guide, %.1f%% by the search's own "
+            "order, %.1f%% by the lookahead share (%d pairs); on nodes it trains on: %.1f%%",
             100 * held["siblings"],
+            100 * held["search_order"],
             100 * held["share"],
             held["pairs"],
             100 * trained["siblings"],

@@ -8,6 +8,7 @@ import hashlib
 import json
 import re
 import shutil
+import time
 from dataclasses import replace
 
 import jax
@@ -40,6 +41,8 @@ from rllock.search.solver import (
     SearchConfig,
     SearchStats,
     _backjump,
+    _best_dive,
+    _dfs,
     _guided,
     expand,
     rollout_reach,
@@ -315,6 +318,37 @@ def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
     assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
 
 
+def test_a_restart_goes_on_from_the_best_valued_of_its_dives():
+    task = make_task("cube5", 13)
+    guide = replace(_untrained(3), horizon=5)
+    config = SearchConfig(dives=4)
+    stats = SearchStats()
+    deadline = time.monotonic() + 60
+    begin, used = _best_dive(
+        task, np.random.default_rng(7), config, 10_000, deadline, stats, lambda: False, None, guide, None
+    )
+    # The same dives again, one by one, from the same generator.
+    rng, dives, spent = np.random.default_rng(7), [], 0
+    for _ in range(4):
+        state, n = _dfs(task, rng, config, 10_000, time.monotonic() + 60, 13 - 1 - 5, SearchStats())
+        dives += [] if state is None else [state]  # a dive can fail: the others still count
+        spent += n
+    values = guide.values(task, dives, [1.0] * len(dives))
+    assert begin is not None and begin.placed == 7 and used == spent
+    assert np.array_equal(begin.labels, dives[int(np.argmax(values))].labels) and len(np.unique(values)) > 1
+    # One dive, or none within the horizon: the restart begins at the root, as the solver's does.
+    for cfg, g in ((SearchConfig(dives=1), guide), (config, replace(guide, horizon=12)), (config, None)):
+        assert _best_dive(
+            task, rng, cfg, 100, time.monotonic() + 60, stats, lambda: False, None, g, None
+        ) == (
+            None,
+            0,
+        )
+    # In a search, assemblies found below a dive are whole and valid.
+    for found in solve(task, count=3, time_limit=120, seed=4, guide=guide, config=config):
+        assert verify_labels(found, task.removal).valid
+
+
 def test_demoting_puts_off_the_children_valued_clearly_below_the_best_and_keeps_each_parts_order():
     task = make_task("cube4", 6)
     kids = [Child(State(initial_state(task).labels, 1), None, share) for share in (0.1, 0.2, 0.3, 0.4, 0.5)]
@@ -492,6 +526,19 @@ def test_held_out_nodes_are_never_trained_on_and_are_judged_as_a_brute_force_cou
     assert found["siblings"] == pytest.approx(right, abs=1e-9) and found["pairs"] == pairs > 50
     share = _brute_sibling_order(nodes["features"][:, SHARE], nodes["target"], nodes["group"])[0]
     assert found["share"] == pytest.approx(share, abs=1e-9)
+    # The search's own order: the order the actor pushed a node's children in, best last.
+    order = _brute_sibling_order(nodes["order"].astype(float), nodes["target"], nodes["group"])[0]
+    assert found["search_order"] == pytest.approx(order, abs=1e-9)
+    # Past the ring's end, the order is still the order they came in.
+    ring = GuideBuffer(10, 8)
+    for part in (np.arange(6), np.arange(6, 14)):
+        came = np.zeros((len(part), GLOBALS), np.float32)
+        came[:, 0] = part
+        ring.add(window[: len(part)], came, target[: len(part)], part // 4 - part[0] // 4)
+    both = [ring.nodes(kept_out, 10, 0) for kept_out in (True, False)]
+    came = np.concatenate([b["features"][:, 0] for b in both])
+    order = np.concatenate([b["order"] for b in both])
+    assert sorted(came) == list(range(4, 14)) and (np.argsort(order) == np.argsort(came)).all()
     assert found["value_error"] == pytest.approx(np.abs(values - nodes["target"]).mean(), rel=1e-5)
     for trial in range(40):
         r = np.random.default_rng(trial)
@@ -690,7 +737,8 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     events.Reload()
     # Each checkpoint judges the siblings of nodes held out of training (and of nodes trained on).
     assert {"losses/value", "losses/siblings", "search/solved", "buffer/size", "heldout/siblings",
-            "heldout/share", "trained/siblings"} <= set(events.Tags()["scalars"])  # fmt: skip
+            "heldout/share", "heldout/search_order",
+            "trained/siblings"} <= set(events.Tags()["scalars"])  # fmt: skip
     assert "siblings ordered rightly on held-out nodes" in err
     guide = load_guide(run)
     task = make_task("cube4", 7)

@@ -107,6 +107,13 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         help="with --keep-order: children valued more than this below their best sibling are tried after "
         "the others (SearchConfig.demote_by)",
     )
+    p.add_argument(
+        "--dives",
+        type=int,
+        default=1,
+        help="the guided arms begin each restart from the best-valued of this many dives to the guide's "
+        "horizon (SearchConfig.dives; default 1: from the first, as the solver does)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 

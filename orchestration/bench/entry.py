@@ -377,8 +377,14 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         config = replace(config, abandon_below=args.abandon_below)
     if args.demote_by is not None and not args.keep_order:
         raise RLLockError("--demote-by goes with --keep-order (the search's own order, less the demoted)")
+    if args.dives < 1:
+        raise RLLockError(f"--dives must be at least 1, got {args.dives}")
     config = replace(
-        config, backjump=args.backjump, guide_orders=not args.keep_order, demote_by=args.demote_by
+        config,
+        backjump=args.backjump,
+        guide_orders=not args.keep_order,
+        demote_by=args.demote_by,
+        dives=args.dives,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit, config=config)

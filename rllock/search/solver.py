@@ -127,6 +127,12 @@ class SearchConfig:
     """With a guide network and `guide_orders` False: a node's children valued more than this below its
     best child's value are tried after the others, each part in the search's own order (the solver's
     judgement stays first; the network only puts off the children it judges clearly worse)."""
+    dives: int = 1
+    """With a guide network: each restart after the first dives this many times from the root (the
+    restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
+    the restart goes on from the dive state the network values best; 1 goes on from the first, as the
+    solver does. The
+    network judges whole remainders better than it orders siblings (docs/benchmarks.md)."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
@@ -572,6 +578,12 @@ def _search(
         restart += 1
         stats.restarts += 1
         budget = config.restart_unit(task, task.pieces - 1) * luby(restart)
+        # The first restart goes on as the solver's: where it succeeds (an easy task) dives cost only time.
+        begin, spent = (
+            _best_dive(task, rng, config, budget, deadline, stats, stop, report, guide, pool)
+            if restart > 1
+            else (None, 0)
+        )
         state, expansions = _dfs(
             task,
             rng,
@@ -584,10 +596,10 @@ def _search(
             report,
             guide,
             record,
-            None,
+            begin,
             pool,
         )
-        used += expansions
+        used += spent + expansions
         if state is None:
             continue
         stats.reached(state)
@@ -599,6 +611,39 @@ def _search(
         now = time.monotonic()
         yield Found(task.topology.to_grid(labels), now - last, used, seed)
         last, used, restart = now, 0, 0
+
+
+def _best_dive(
+    task: Task,
+    rng: np.random.Generator,
+    config: SearchConfig,
+    budget: int,
+    deadline: float,
+    stats: SearchStats,
+    stop: Callable[[], bool],
+    report: Callable[[SearchStats], None] | None,
+    guide: Guide | None,
+    pool: SamplingPool | None,
+) -> tuple[State | None, int]:
+    """Where a restart begins (`SearchConfig.dives`): of `config.dives` dives from the root to
+    `guide.horizon` pieces before the end, the state the guide values best, and the expansions the dives
+    took; (None, 0), the root, without a guide or with one dive."""
+    if guide is None or config.dives <= 1:
+        return None, 0
+    depth = task.pieces - 1 - guide.horizon
+    if depth < 1:
+        return None, 0
+    reached, used = [], 0
+    for _ in range(config.dives):
+        state, spent = _dfs(task, rng, config, budget, deadline, depth, stats, stop, report, pool=pool)
+        used += spent
+        if state is not None:
+            reached.append(state)
+    if not reached:
+        return None, used
+    # One share for all: a dive state's lookahead share among its own siblings says nothing across dives.
+    values = guide.values(task, reached, [1.0] * len(reached))
+    return reached[int(np.argmax(values))], used
 
 
 def reach_depth(
