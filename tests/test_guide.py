@@ -318,32 +318,35 @@ def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
     assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
 
 
-def test_a_restart_goes_on_from_the_best_valued_of_its_dives():
+def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_before():
     task = make_task("cube5", 13)
     guide = replace(_untrained(3), horizon=5)
     config = SearchConfig(dives=4)
-    stats = SearchStats()
+    stats, kept = SearchStats(), []
     deadline = time.monotonic() + 60
-    begin, used = _best_dive(
-        task, np.random.default_rng(7), config, 10_000, deadline, stats, lambda: False, None, guide, None
-    )
-    # The same dives again, one by one, from the same generator.
-    rng, dives, spent = np.random.default_rng(7), [], 0
-    for _ in range(4):
-        state, n = _dfs(task, rng, config, 10_000, time.monotonic() + 60, 13 - 1 - 5, SearchStats())
-        dives += [] if state is None else [state]  # a dive can fail: the others still count
-        spent += n
-    values = guide.values(task, dives, [1.0] * len(dives))
-    assert begin is not None and begin.placed == 7 and used == spent
-    assert np.array_equal(begin.labels, dives[int(np.argmax(values))].labels) and len(np.unique(values)) > 1
+    rng = np.random.default_rng(7)
+    begun = []
+    for _ in range(3):
+        begin, used = _best_dive(
+            task, rng, config, 10_000, deadline, stats, lambda: False, None, guide, None, kept
+        )
+        begun.append((begin, used))
+    # The same dives again, one by one, from the same generator; each restart takes the best left.
+    again, left = np.random.default_rng(7), []
+    for begin, used in begun:
+        spent = 0
+        for _ in range(4):
+            state, n = _dfs(task, again, config, 10_000, deadline, 13 - 1 - 5, SearchStats())
+            left += [] if state is None else [state]  # a dive can fail: the others still count
+            spent += n
+        values = guide.values(task, left, [1.0] * len(left))
+        best = left.pop(int(np.argmax(values)))
+        assert begin is not None and begin.placed == 7 and used == spent and len(np.unique(values)) > 1
+        assert np.array_equal(begin.labels, best.labels)
+    assert len(kept) == len(left)
     # One dive, or none within the horizon: the restart begins at the root, as the solver's does.
     for cfg, g in ((SearchConfig(dives=1), guide), (config, replace(guide, horizon=12)), (config, None)):
-        assert _best_dive(
-            task, rng, cfg, 100, time.monotonic() + 60, stats, lambda: False, None, g, None
-        ) == (
-            None,
-            0,
-        )
+        assert _best_dive(task, rng, cfg, 100, deadline, stats, lambda: False, None, g, None, []) == (None, 0)
     # In a search, assemblies found below a dive are whole and valid.
     for found in solve(task, count=3, time_limit=120, seed=4, guide=guide, config=config):
         assert verify_labels(found, task.removal).valid

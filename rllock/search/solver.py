@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # the guide brings JAX; the plain search starts without it
 
 # How often a running search reports its progress, in seconds.
 PROGRESS_EVERY = 0.5
+DIVE_POOL = 64  # dive states kept for later restarts (`SearchConfig.dives`): the best, a bounded memory
 
 
 @dataclass(frozen=True)
@@ -130,8 +131,8 @@ class SearchConfig:
     dives: int = 1
     """With a guide network: each restart after the first dives this many times from the root (the
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
-    the restart goes on from the dive state the network values best; 1 goes on from the first, as the
-    solver does. The
+    the restart goes on from the dive state the network values best among these and those earlier
+    restarts left untaken; 1 goes on from the first, as the solver does. The
     network judges whole remainders better than it orders siblings (docs/benchmarks.md)."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
@@ -573,6 +574,7 @@ def _search(
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
+    kept: list[tuple[float, int, State]] = []  # dive states not yet taken (`_best_dive`)
     last, used, restart = start, 0, 0
     while time.monotonic() < deadline and not stop():
         restart += 1
@@ -580,7 +582,7 @@ def _search(
         budget = config.restart_unit(task, task.pieces - 1) * luby(restart)
         # The first restart goes on as the solver's: where it succeeds (an easy task) dives cost only time.
         begin, spent = (
-            _best_dive(task, rng, config, budget, deadline, stats, stop, report, guide, pool)
+            _best_dive(task, rng, config, budget, deadline, stats, stop, report, guide, pool, kept)
             if restart > 1
             else (None, 0)
         )
@@ -624,10 +626,12 @@ def _best_dive(
     report: Callable[[SearchStats], None] | None,
     guide: Guide | None,
     pool: SamplingPool | None,
+    kept: list[tuple[float, int, State]],
 ) -> tuple[State | None, int]:
-    """Where a restart begins (`SearchConfig.dives`): of `config.dives` dives from the root to
-    `guide.horizon` pieces before the end, the state the guide values best, and the expansions the dives
-    took; (None, 0), the root, without a guide or with one dive."""
+    """Where a restart begins (`SearchConfig.dives`): `config.dives` dives from the root to `guide.horizon`
+    pieces before the end go into `kept` (the dive states of earlier restarts not yet taken, with their
+    values, best last, at most `DIVE_POOL`), and the best of it is taken; with the expansions the dives
+    took. (None, 0), the root, without a guide or with one dive."""
     if guide is None or config.dives <= 1:
         return None, 0
     depth = task.pieces - 1 - guide.horizon
@@ -639,11 +643,14 @@ def _best_dive(
         used += spent
         if state is not None:
             reached.append(state)
-    if not reached:
-        return None, used
     # One share for all: a dive state's lookahead share among its own siblings says nothing across dives.
     values = guide.values(task, reached, [1.0] * len(reached))
-    return reached[int(np.argmax(values))], used
+    kept += [
+        (float(v), stats.restarts * config.dives + i, st) for i, (v, st) in enumerate(zip(values, reached))
+    ]
+    kept.sort(key=lambda t: t[:2])
+    del kept[: max(0, len(kept) - DIVE_POOL)]
+    return (kept.pop()[2] if kept else None), used
 
 
 def reach_depth(
