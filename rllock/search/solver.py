@@ -132,8 +132,8 @@ class SearchConfig:
     """With a guide network: each restart after the first dives this many times from the root (the
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
     the restart goes on from the dive state the network values best among these and those earlier
-    restarts left untaken; 1 goes on from the first, as the solver does. The
-    network judges whole remainders better than it orders siblings (docs/benchmarks.md)."""
+    restarts left untaken; 1 goes on from the first, as the solver does. The network judges whole
+    remainders better than it orders siblings (docs/benchmarks.md, "The guide judges whole remainders")."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
