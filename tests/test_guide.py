@@ -677,6 +677,8 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
     for bad, words in (("cube4", "bad cell"), ("cube4:x", "bad cell"), ("nosuchshape:6", "nosuchshape")):
         code, out, err = run_cli(*bench, "--cells", bad)
         assert code == 2 and err.count("\n") == 1 and words in err, err
+    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--dives", "0")
+    assert code == 2 and err.count("\n") == 1 and "--dives must be at least 1" in err, err
 
 
 def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):
