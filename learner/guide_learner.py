@@ -173,7 +173,21 @@ def sibling_order(
     return (right / pairs if pairs else 0.5), pairs
 
 
-JUDGE_BATCH = 32 * PAD  # states per network call in `judge`: one batch shape, one compile
+JUDGE_BATCH = 32 * PAD  # states per network call in `encoded_values`: one batch shape, one compile
+
+
+def encoded_values(params: dict, config: GuideConfig, window: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """The network's values of encoded states (a buffer's `window` and `features`), JUDGE_BATCH at a
+    time, the last batch padded."""
+    n = len(features)
+    values = np.zeros(n, np.float32)
+    for at in range(0, n, JUDGE_BATCH):
+        m = min(JUDGE_BATCH, n - at)
+        w = np.zeros((JUDGE_BATCH, *window.shape[1:]), np.int8)
+        f = np.zeros((JUDGE_BATCH, GLOBALS), np.float32)
+        w[:m], f[:m] = window[at : at + m], features[at : at + m]
+        values[at : at + m] = np.asarray(guide_values(params, w, f, config=config))[:m]
+    return values
 
 
 def judge(params: dict, config: GuideConfig, nodes: dict[str, np.ndarray]) -> dict[str, float]:
@@ -182,13 +196,7 @@ def judge(params: dict, config: GuideConfig, nodes: dict[str, np.ndarray]) -> di
     ("search_order": what the guide must beat to be worth its cost), how many pairs ("pairs"), and the
     mean absolute error of the value against the target ("value_error")."""
     n = len(nodes["target"])
-    values = np.zeros(n, np.float32)
-    for at in range(0, n, JUDGE_BATCH):
-        part = slice(at, min(at + JUDGE_BATCH, n))
-        window = np.zeros((JUDGE_BATCH, *nodes["window"].shape[1:]), np.int8)
-        features = np.zeros((JUDGE_BATCH, GLOBALS), np.float32)
-        window[: part.stop - at], features[: part.stop - at] = nodes["window"][part], nodes["features"][part]
-        values[part] = np.asarray(guide_values(params, window, features, config=config))[: part.stop - at]
+    values = encoded_values(params, config, nodes["window"], nodes["features"])
     target, group = nodes["target"], nodes["group"]
     siblings_right, pairs = sibling_order(values, target, group)
     share_right, _ = sibling_order(nodes["features"][:, SHARE], target, group)

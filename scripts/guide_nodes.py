@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from learner.guide_learner import SHARE, held_out, sibling_order
-from rllock.search.guide import GLOBALS, guide_values
+from learner.guide_learner import SHARE, encoded_values, held_out, sibling_order
+from rllock.search.guide import GLOBALS
 from rllock.search.guide_checkpoint import load_guide
 
 log = logging.getLogger("guide_nodes")
@@ -29,18 +29,6 @@ def positions(group: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(group == g)
         pos[idx] = np.arange(len(idx)) / max(len(idx) - 1, 1)
     return pos
-
-
-def values_of(run: Path, window: np.ndarray, features: np.ndarray) -> np.ndarray:
-    guide = load_guide(run)
-    out, batch = np.zeros(len(window), np.float32), 256
-    for a in range(0, len(window), batch):
-        w = np.zeros((batch, *window.shape[1:]), np.int8)
-        f = np.zeros((batch, GLOBALS), np.float32)
-        m = min(batch, len(window) - a)
-        w[:m], f[:m] = window[a : a + m], features[a : a + m]
-        out[a : a + m] = np.asarray(guide_values(guide.params, w, f, config=guide.config))[:m]
-    return out
 
 
 def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-2, steps: int = 2000) -> np.ndarray:
@@ -86,7 +74,8 @@ def main() -> None:
     n = int(data["size"])
     group, target = data["group"][:n], data["target"][:n]
     features, window = data["features"][:n], data["window"][:n]
-    pos, values = positions(group), values_of(args.run, window, features)
+    guide = load_guide(args.run)
+    pos, values = positions(group), encoded_values(guide.params, guide.config, window, features)
     for name, mask in (("held out", held_out(group)), ("trained on", ~held_out(group))):
         t, g = target[mask], group[mask]
         guide, pairs = sibling_order(values[mask], t, g)

@@ -574,7 +574,7 @@ def _search(
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
-    kept: list[tuple[float, int, State]] = []  # dive states not yet taken (`_best_dive`)
+    kept: list[tuple[float, State]] = []  # dive states not yet taken, with their values (`_best_dive`)
     last, used, restart = start, 0, 0
     while time.monotonic() < deadline and not stop():
         restart += 1
@@ -626,7 +626,7 @@ def _best_dive(
     report: Callable[[SearchStats], None] | None,
     guide: Guide | None,
     pool: SamplingPool | None,
-    kept: list[tuple[float, int, State]],
+    kept: list[tuple[float, State]],
 ) -> tuple[State | None, int]:
     """Where a restart begins (`SearchConfig.dives`): `config.dives` dives from the root to `guide.horizon`
     pieces before the end go into `kept` (the dive states of earlier restarts not yet taken, with their
@@ -645,12 +645,10 @@ def _best_dive(
             reached.append(state)
     # One share for all: a dive state's lookahead share among its own siblings says nothing across dives.
     values = guide.values(task, reached, [1.0] * len(reached))
-    kept += [
-        (float(v), stats.restarts * config.dives + i, st) for i, (v, st) in enumerate(zip(values, reached))
-    ]
-    kept.sort(key=lambda t: t[:2])
+    kept += zip(values.tolist(), reached)
+    kept.sort(key=lambda t: t[0])  # stable: of equal values, the newest last
     del kept[: max(0, len(kept) - DIVE_POOL)]
-    return (kept.pop()[2] if kept else None), used
+    return (kept.pop()[1] if kept else None), used
 
 
 def reach_depth(
