@@ -352,6 +352,43 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
         assert verify_labels(found, task.removal).valid
 
 
+class _Counted:
+    """A guide that counts the states it is asked to value, call by call."""
+
+    def __init__(self, guide: Guide):
+        self.guide, self.horizon, self.calls = guide, guide.horizon, []
+
+    def values(self, task, states, shares):
+        self.calls.append(len(states))
+        return self.guide.values(task, states, shares)
+
+
+def _six_restarts(task, config: SearchConfig) -> tuple[list, SearchStats, list[int]]:
+    """A search with an untrained guide (horizon 6) stopped as its sixth restart begins: the
+    assemblies found, its stats and the sizes of its calls to the guide."""
+    guide, stats = _Counted(replace(_untrained(), horizon=6)), SearchStats()
+    runs = search(
+        task, seed=2, time_limit=60, guide=guide, config=config, stats=stats, stop=lambda: stats.restarts > 5
+    )  # type: ignore[arg-type]
+    return list(runs), stats, guide.calls
+
+
+def test_a_guide_that_keeps_the_order_and_dives_values_only_the_dive_states():
+    task = make_task("desia-dog", 60)
+    dives = SearchConfig(guide_orders=False, dives=3)
+    for config, only_dives in (
+        (dives, True),
+        (replace(dives, dives_from=3), True),
+        (replace(dives, backjump=2.0), False),
+    ):
+        found, stats, calls = _six_restarts(task, config)
+        assert not found and stats.restarts == 6
+        if only_dives:  # one call per restart from `dives_from` on, of at most its dives
+            assert len(calls) == stats.restarts - config.dives_from + 1 and max(calls) <= 3
+        else:  # to backjump, every node's children within the horizon are valued
+            assert len(calls) > stats.restarts
+
+
 def test_demoting_puts_off_the_children_valued_clearly_below_the_best_and_keeps_each_parts_order():
     task = make_task("cube4", 6)
     kids = [Child(State(initial_state(task).labels, 1), None, share) for share in (0.1, 0.2, 0.3, 0.4, 0.5)]

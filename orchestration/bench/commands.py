@@ -114,6 +114,13 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         help="the guided arms begin each restart from the best-valued of this many dives to the guide's "
         "horizon (SearchConfig.dives; default 1: from the first, as the solver does)",
     )
+    p.add_argument(
+        "--dives-from",
+        type=int,
+        default=None,
+        help="with --dives: the first restart that dives; those before are the solver's "
+        "(SearchConfig.dives_from; default: the search's own)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 

@@ -379,6 +379,10 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         raise RLLockError("--demote-by goes with --keep-order (the search's own order, less the demoted)")
     if args.dives < 1:
         raise RLLockError(f"--dives must be at least 1, got {args.dives}")
+    if args.dives_from is not None:
+        if args.dives_from < 1:
+            raise RLLockError(f"--dives-from must be at least 1, got {args.dives_from}")
+        config = replace(config, dives_from=args.dives_from)
     config = replace(
         config,
         backjump=args.backjump,

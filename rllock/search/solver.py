@@ -129,15 +129,24 @@ class SearchConfig:
     best child's value are tried after the others, each part in the search's own order (the solver's
     judgement stays first; the network only puts off the children it judges clearly worse)."""
     dives: int = 1
-    """With a guide network: each restart after the first dives this many times from the root (the
+    """With a guide network: each restart from `dives_from` on dives this many times from the root (the
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
     the restart goes on from the dive state the network values best among these and those earlier
     restarts left untaken; 1 goes on from the first, as the solver does. The network judges whole
     remainders better than it orders siblings (docs/benchmarks.md, "The guide judges whole remainders")."""
+    dives_from: int = 2
+    """The first restart (since the start or the last assembly) that dives (`dives`); those before are
+    the solver's own."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
     many pieces there (the failure was set at that step); None backtracks one step."""
+
+    def values_children(self) -> bool:
+        """Whether a guide's values of a node's children are used (to order, demote, abandon or backjump):
+        with `guide_orders` False and none of the others, only the dive states are valued."""
+        used = (self.demote_by, self.backjump)
+        return self.guide_orders or self.abandon_below > 0 or any(u is not None for u in used)
 
     def share_for(self, task: Task) -> float:
         """The share of closed-proposal chunks for `task`."""
@@ -438,6 +447,8 @@ class _Expander:
         guide = self.guide
         if guide is None or not children or self.target - children[0].state.placed > guide.horizon:
             return children
+        if not self.config.values_children():
+            return children
         return _guided(self.task, children, guide, self.config)
 
 
@@ -580,10 +591,10 @@ def _search(
         restart += 1
         stats.restarts += 1
         budget = config.restart_unit(task, task.pieces - 1) * luby(restart)
-        # The first restart goes on as the solver's: where it succeeds (an easy task) dives cost only time.
+        # The first restarts go on as the solver's: where they succeed (an easy task) dives cost only time.
         begin, spent = (
             _best_dive(task, rng, config, budget, deadline, stats, stop, report, guide, pool, kept)
-            if restart > 1
+            if restart >= config.dives_from
             else (None, 0)
         )
         state, expansions = _dfs(
