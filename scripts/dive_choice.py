@@ -63,7 +63,7 @@ def rate(args: argparse.Namespace) -> None:
     untrained = Guide(
         trained.config, init_guide(trained.config, jax.random.PRNGKey(0)), "untrained", trained.horizon
     )
-    config = SearchConfig(guide_orders=False, dives=args.dives)
+    config = SearchConfig(dives=args.dives, dives_from=args.dives_from)
     for g in (trained, untrained):  # compiled before any arm is timed
         g.values(task, [initial_state(task)], [1.0])
     for arm, guide in (("solver", None), ("guided", trained), ("untrained", untrained)):
@@ -91,6 +91,7 @@ def main() -> None:
     p.add_argument("guide", help="a train-guide run or checkpoint")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dives", type=int, default=16)
+    p.add_argument("--dives-from", type=int, default=2, help="rate: the first restart that dives")
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--budget", type=int, default=2000, help="node expansions of each restart (trials)")
     p.add_argument("--seconds", type=float, default=100.0, help="seconds per arm (rate)")

@@ -274,8 +274,9 @@ def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare(
     params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, -10.0)}
     hopeless = Guide(CONFIG, params, "hopeless")
     assert (hopeless.values(task, [initial_state(task)], [1.0]) < 0.02).all()
+    orders = SearchConfig(guide_orders=True)
     for guide in (_untrained(), hopeless):
-        found = solve(task, count=1, time_limit=120, seed=0, guide=guide)
+        found = solve(task, count=1, time_limit=120, seed=0, guide=guide, config=orders)
         assert len(found) == 1 and verify_labels(found[0], task.removal).valid
 
 
@@ -304,7 +305,7 @@ def test_a_node_whose_children_all_value_below_abandon_below_is_abandoned():
 
 def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
     task = make_task("cube5", 13)
-    keep = SearchConfig(guide_orders=False)
+    keep = SearchConfig()  # K = 13: no dive state 20 pieces before the end, so nothing for the guide
     # A constant value: the expected shortfall (1 - v) x pieces left never grows, so it never backjumps.
     level = replace(keep, backjump=0.5)
     runs = []
@@ -314,14 +315,16 @@ def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
         runs.append((found.labels.tobytes(), found.expansions, stats.restarts))
     assert runs[0] == runs[1] == runs[2]
     # The untrained guide's own order is another search.
-    ordered = next(search(task, seed=1, time_limit=120, guide=_untrained()))
+    ordered = next(
+        search(task, seed=1, time_limit=120, guide=_untrained(), config=SearchConfig(guide_orders=True))
+    )
     assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
 
 
 def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_before():
     task = make_task("cube5", 13)
     guide = replace(_untrained(3), horizon=5)
-    config = SearchConfig(dives=4)
+    config = SearchConfig(dives=4, dives_from=2)
     stats, kept = SearchStats(), []
     deadline = time.monotonic() + 60
     rng = np.random.default_rng(7)
@@ -375,7 +378,7 @@ def _six_restarts(task, config: SearchConfig) -> tuple[list, SearchStats, list[i
 
 def test_a_guide_that_keeps_the_order_and_dives_values_only_the_dive_states():
     task = make_task("desia-dog", 60)
-    dives = SearchConfig(guide_orders=False, dives=3)
+    dives = SearchConfig(dives=3, dives_from=2)
     for config, only_dives in (
         (dives, True),
         (replace(dives, dives_from=3), True),
@@ -400,7 +403,7 @@ def test_demoting_puts_off_the_children_valued_clearly_below_the_best_and_keeps_
             return np.array([0.9, 0.2, 0.7, 0.85, 0.1], np.float32)
 
     def order(demote_by: float) -> list[float]:
-        config = SearchConfig(guide_orders=False, demote_by=demote_by)
+        config = SearchConfig(demote_by=demote_by)
         return [c.share for c in _guided(task, kids, Valued(), config)]
 
     # Pop order, best last: the demoted (valued 0.2 and 0.1) first, each part as the search had it.
@@ -703,7 +706,7 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
     config = GuideTrainConfig(guide=CONFIG)
     _save_guide(tmp_path / "run", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(2)), config)
     bench = ["bench", "guide", "--guide", str(tmp_path / "run"), "--seeds", "0,1", "--time-limit", "30"]
-    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--backjump", "2", "--keep-order", "--json")
+    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--backjump", "2", "--json")
     assert code == 0, err
     doc = json.loads(out)
     (row,) = doc["rows"]

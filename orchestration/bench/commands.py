@@ -95,31 +95,31 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         "many pieces (SearchConfig.backjump; default: one step)",
     )
     p.add_argument(
-        "--keep-order",
+        "--guide-orders",
         action="store_true",
-        help="the guided arms keep the search's own order of children; the values only judge "
-        "(SearchConfig.guide_orders False)",
+        help="the guided arms order and prune every node's children by the network's values, as "
+        "before the dives (SearchConfig.guide_orders)",
     )
     p.add_argument(
         "--demote-by",
         type=positive_float,
         default=None,
-        help="with --keep-order: children valued more than this below their best sibling are tried after "
+        help="children valued more than this below their best sibling are tried after "
         "the others (SearchConfig.demote_by)",
     )
     p.add_argument(
         "--dives",
         type=int,
-        default=1,
+        default=None,
         help="the guided arms begin each restart from the best-valued of this many dives to the guide's "
-        "horizon (SearchConfig.dives; default 1: from the first, as the solver does)",
+        "horizon; 1: from the first, as the solver does (SearchConfig.dives; default: the search's own)",
     )
     p.add_argument(
         "--dives-from",
         type=int,
         default=None,
-        help="with --dives: the first restart that dives; those before are the solver's "
-        "(SearchConfig.dives_from; default: the search's own)",
+        help="the first restart that dives; those before are the solver's (SearchConfig.dives_from; "
+        "default: the search's own)",
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)

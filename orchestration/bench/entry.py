@@ -375,20 +375,18 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         if not 0.0 <= args.abandon_below <= 1.0:
             raise RLLockError(f"--abandon-below is a value in [0, 1], got {args.abandon_below}")
         config = replace(config, abandon_below=args.abandon_below)
-    if args.demote_by is not None and not args.keep_order:
-        raise RLLockError("--demote-by goes with --keep-order (the search's own order, less the demoted)")
-    if args.dives < 1:
-        raise RLLockError(f"--dives must be at least 1, got {args.dives}")
-    if args.dives_from is not None:
-        if args.dives_from < 1:
-            raise RLLockError(f"--dives-from must be at least 1, got {args.dives_from}")
-        config = replace(config, dives_from=args.dives_from)
+    if args.demote_by is not None and args.guide_orders:
+        raise RLLockError("--demote-by goes with the search's own order, not --guide-orders")
+    for flag, value in (("--dives", args.dives), ("--dives-from", args.dives_from)):
+        if value is not None and value < 1:
+            raise RLLockError(f"{flag} must be at least 1, got {value}")
     config = replace(
         config,
         backjump=args.backjump,
-        guide_orders=not args.keep_order,
+        guide_orders=args.guide_orders,
         demote_by=args.demote_by,
-        dives=args.dives,
+        dives=config.dives if args.dives is None else args.dives,
+        dives_from=config.dives_from if args.dives_from is None else args.dives_from,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit, config=config)

@@ -121,22 +121,27 @@ class SearchConfig:
     abandon_below: float = 0.0
     """With a guide network: a node whose every child is valued below this is abandoned, the search
     backtracks at once (most nodes' children all win or all lose: the failure was set higher up)."""
-    guide_orders: bool = True
-    """With a guide network: its values (and the lookahead share, `guide_count_weight`) order the
-    children; False keeps the search's own order and uses the values only to backjump."""
+    guide_orders: bool = False
+    """With a guide network: its values (and the lookahead share, `guide_count_weight`) order and prune
+    (`prune_below`) the children of every node within its horizon. Off by default: guides ordered
+    siblings about as the search's own order does and did not beat the plain search that way; they
+    judge whole remainders, which `dives` asks of them (docs/benchmarks.md)."""
     demote_by: float | None = None
     """With a guide network and `guide_orders` False: a node's children valued more than this below its
     best child's value are tried after the others, each part in the search's own order (the solver's
     judgement stays first; the network only puts off the children it judges clearly worse)."""
-    dives: int = 1
+    dives: int = 4
     """With a guide network: each restart from `dives_from` on dives this many times from the root (the
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
     the restart goes on from the dive state the network values best among these and those earlier
-    restarts left untaken; 1 goes on from the first, as the solver does. The network judges whole
-    remainders better than it orders siblings (docs/benchmarks.md, "The guide judges whole remainders")."""
-    dives_from: int = 2
-    """The first restart (since the start or the last assembly) that dives (`dives`); those before are
-    the solver's own."""
+    restarts left untaken; 1 goes on from the first, as the solver does. With 4, a guide taught mario
+    solved mario K=60 on 7 seeds of 9 in 300 s, the solver and the untrained network on 2
+    (docs/benchmarks.md, "The guide judges whole remainders"). Tasks with at most `Guide.horizon` + 1
+    pieces have no dive state: there the guided search is the solver's."""
+    dives_from: int = 8
+    """The first restart (since the start or the last assembly) that dives; those before are the
+    solver's own, so a task the plain search solves at once is solved as fast (the first seven restarts
+    are 12 units of the Luby schedule: mario K=58 took 1-8 restarts on 9 seeds of 10)."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
