@@ -6,7 +6,7 @@ stays light):
     make_task(shape, pieces, removal="straight")   a task: a shape (built-in name, file or bool grid) and K
     solve(task, count=1, time_limit=60, seed=0, guide=None, threads=1)
                                                    assemblies by randomized search, no training; with a
-                                                   guide network (`load_guide`) ordering and pruning it;
+                                                   guide network (`load_guide`) picking its restarts;
                                                    on `threads` cores, the same search sooner
     load_guide(checkpoint="guide")                 a guide network: the shipped one, or a train-guide run
     load_policy(checkpoint)                        a trained network and its search settings

@@ -324,7 +324,7 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         const="guide",
         default=None,
         metavar="CHECKPOINT",
-        help="order and prune the search with a guide network: alone, the shipped one; or a run of "
+        help="a guide network picks where the search's restarts begin: alone, the shipped one; or a run of "
         "rllock train-guide, or one of its checkpoints (default: the plain search)",
     )
     p.add_argument(

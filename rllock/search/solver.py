@@ -475,8 +475,9 @@ def _dfs(
     """One restart: DFS from the root (or `start`) for at most `budget` expansions until a state with
     `target` placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
-    PROGRESS_EVERY seconds. A `guide` orders the children by its values (all children of a node in one
-    call) and drops the hopeless ones; `record` takes every state the search leaves (`Record`)."""
+    PROGRESS_EVERY seconds. A `guide` may judge the children (`_guided`: all children of a node in one
+    call; `SearchConfig.guide_orders` and what else asks for values); `record` takes every state the
+    search leaves (`Record`)."""
     nodes = _Expander(task, rng, config, target, stats, report, guide, pool)
     root = initial_state(task) if start is None else start
     stack = [nodes.children_of(root, nodes.sample(root)[0])]
@@ -556,10 +557,11 @@ def search(
 ) -> Generator[Found, None, None]:
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
-    to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network orders and prunes
-    the children (`_dfs`); `record` takes the states the search leaves with their lookahead shares. A
-    node's children are sampled on `threads` threads, or on a `pool` the caller owns (and shuts down). A
-    task that provably has no assembly is an error at once (`rllock.core.feasibility`)."""
+    to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network picks where
+    restarts begin (`SearchConfig.dives`) and, as configured, judges the children (`_dfs`); `record`
+    takes the states the search leaves with their lookahead shares. A node's children are sampled on
+    `threads` threads, or on a `pool` the caller owns (and shuts down). A task that provably has no
+    assembly is an error at once (`rllock.core.feasibility`)."""
     if threads < 1:
         raise ValueError(f"threads must be at least 1, got {threads}")
     if threads > 1 and pool is not None:
@@ -746,7 +748,7 @@ def solve(
 ) -> list[np.ndarray]:
     """Up to `count` distinct assemblies of `task` found by the search within `time_limit` seconds, as
     label grids [x, y, z] (1..K, in disassembly order), each passed by the full verifier. `guide`: a
-    guide network (`rllock.search.guide`) that orders and prunes the search's children. `threads`: a
+    guide network (`rllock.search.guide`) that picks where the search's restarts begin. `threads`: a
     node's children are sampled on this many threads (the same search, node for node, sooner on as many
     cores)."""
     from rllock.core.verifier import verify_labels
