@@ -138,10 +138,11 @@ class SearchConfig:
     solved mario K=60 on 7 seeds of 9 in 300 s, the solver and the untrained network on 2
     (docs/benchmarks.md, "The guide judges whole remainders"). Tasks with at most `Guide.horizon` + 1
     pieces have no dive state: there the guided search is the solver's."""
-    dives_from: int = 8
+    dives_from: int = 2
     """The first restart (since the start or the last assembly) that dives; those before are the
-    solver's own, so a task the plain search solves at once is solved as fast (the first seven restarts
-    are 12 units of the Luby schedule: mario K=58 took 1-8 restarts on 9 seeds of 10)."""
+    solver's own. From the 8th restart on (the solver's first seven solve an easy task such as mario
+    K=58 on 8 seeds of 10, and as fast), the guide taught mario solved mario K=60 on 2 seeds of 8 in
+    300 s, against 7 of 9 from the 2nd (docs/benchmarks.md, "`solve --guide` dives")."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
