@@ -696,6 +696,7 @@ def test_solve_with_a_guide_writes_a_verified_assembly_that_names_it(tmp_path):
     doc = json.loads((tmp_path / "o" / "assembly_001" / "assembly.json").read_text())
     assert "run/checkpoints" in doc["method"]["guide"]
     assert to_json(config)["guide"]["window"] == 8
+    assert "K=7 leaves no state 20 pieces before the end to dive to" in err  # the user is told
 
 
 def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_one_line(tmp_path):

@@ -98,6 +98,13 @@ def cmd_solve(args: argparse.Namespace) -> int:
         from rllock.search.guide_checkpoint import load_guide
 
         guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
+        if task.pieces - 1 - guide.horizon < 1:
+            log.info(
+                "--guide: K=%d leaves no state %d pieces before the end to dive to, so the search is "
+                "the solver's",
+                task.pieces,
+                guide.horizon,
+            )
     joined = args.address is not None and _join_ray(args.address)
     out = fresh_out(args.out)
     written: list[Path] = []
