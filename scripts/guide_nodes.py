@@ -74,8 +74,8 @@ def main() -> None:
     n = int(data["size"])
     group, target = data["group"][:n], data["target"][:n]
     features, window = data["features"][:n], data["window"][:n]
-    guide = load_guide(args.run)
-    pos, values = positions(group), encoded_values(guide.params, guide.config, window, features)
+    net = load_guide(args.run)
+    pos, values = positions(group), encoded_values(net.params, net.config, window, features)
     for name, mask in (("held out", held_out(group)), ("trained on", ~held_out(group))):
         t, g = target[mask], group[mask]
         guide, pairs = sibling_order(values[mask], t, g)

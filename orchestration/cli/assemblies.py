@@ -96,9 +96,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
     guide = None
     if args.guide is not None:
         from rllock.search.guide_checkpoint import load_guide
+        from rllock.search.solver import dive_depth
 
         guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
-        if task.pieces - 1 - guide.horizon < 1:
+        if dive_depth(task, guide) < 1:
             log.info(
                 "--guide: K=%d leaves no state %d pieces before the end to dive to, so the search is "
                 "the solver's",

@@ -634,6 +634,12 @@ def _search(
         last, used, restart = now, 0, 0
 
 
+def dive_depth(task: Task, guide: Guide) -> int:
+    """The pieces placed at a dive state (`SearchConfig.dives`): `guide.horizon` pieces before the end.
+    Below 1, `task` has no dive state and a guided search is the solver's."""
+    return task.pieces - 1 - guide.horizon
+
+
 def _best_dive(
     task: Task,
     rng: np.random.Generator,
@@ -653,7 +659,7 @@ def _best_dive(
     took. (None, 0), the root, without a guide or with one dive."""
     if guide is None or config.dives <= 1:
         return None, 0
-    depth = task.pieces - 1 - guide.horizon
+    depth = dive_depth(task, guide)
     if depth < 1:
         return None, 0
     reached, used = [], 0
