@@ -135,14 +135,15 @@ class SearchConfig:
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
     the restart goes on from the dive state the network values best among these and those earlier
     restarts left untaken; 1 goes on from the first, as the solver does. With 4, a guide taught mario
-    solved mario K=60 on 7 seeds of 9 in 300 s, the solver and the untrained network on 2
-    (docs/benchmarks.md, "The guide judges whole remainders"). Tasks with at most `Guide.horizon` + 1
+    solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2 of 9
+    (docs/benchmarks.md, "mario K=60 on 18 seeds"). Tasks with at most `Guide.horizon` + 1
     pieces have no dive state: there the guided search is the solver's."""
     dives_from: int = 2
     """The first restart (since the start or the last assembly) that dives; those before are the
     solver's own. From the 8th restart on (the solver's first seven solve an easy task such as mario
-    K=58 on 8 seeds of 10, and as fast), the guide taught mario solved mario K=60 on 2 seeds of 8 in
-    300 s, against 7 of 9 from the 2nd (docs/benchmarks.md, "`solve --guide` dives")."""
+    K=58 on 8 seeds of 10, and as fast), the guide taught mario solved mario K=60 on 3 seeds of 17 in
+    300 s (also with as many dive states in its pool), against 12 of 18 from the 2nd
+    (docs/benchmarks.md, "`solve --guide` dives", "mario K=60 on 18 seeds")."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
