@@ -135,9 +135,10 @@ class SearchConfig:
     restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
     the restart goes on from the dive state the network values best among these and those earlier
     restarts left untaken; 1 goes on from the first, as the solver does. With 4, a guide taught mario
-    solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2 of 9
-    (docs/benchmarks.md, "mario K=60 on 18 seeds"). Tasks with at most `Guide.horizon` + 1
-    pieces have no dive state: there the guided search is the solver's."""
+    solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2 of 9;
+    a second training of the same command, 2 of 8 (docs/benchmarks.md, "mario K=60 on 18 seeds").
+    Tasks with at most `Guide.horizon` + 1 pieces have no dive state: there the guided search is the
+    solver's."""
     dives_from: int = 2
     """The first restart (since the start or the last assembly) that dives; those before are the
     solver's own. From the 8th restart on (the solver's first seven solve an easy task such as mario
