@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
-from actors.guide_actor import Probes, label_children, value_target
+from actors.guide_actor import Probes, label_children, run_search, value_target
 from learner.guide_learner import (
     SHARE,
     SIBLINGS_WITHIN,
@@ -265,6 +265,25 @@ def test_labelling_skips_dead_ends_and_stops_at_the_probes_wanted():
     counts = [len(expand(task, root, seed=derive_seed(3, p))) for p in (1, 3)]
     assert min(counts) > 0
     assert labelled.group.tolist() == [1] * counts[0] + [3] * counts[1]
+
+
+def test_an_actors_guided_search_dives_or_values_every_nodes_children_as_configured():
+    # cube5 K=13 is solved by the first restart, which is the solver's: a diving search asks the guide
+    # nothing, one that orders values the children of each node within the horizon (6) on its way.
+    task = make_task("cube5", 13)
+    runs = {}
+    for guided_search in ("dives", "orders"):
+        config = GuideTrainConfig(
+            guide=CONFIG, guided_search=guided_search, rollouts=1, rollout_expansions=5, probes=1, max_left=6
+        )
+        guide = _Counted(replace(_untrained(), horizon=6))
+        labelled, solved, placed, _ = run_search(config, 0, 0, guide, [task])  # type: ignore[arg-type]
+        assert solved and placed == task.pieces - 1
+        runs[guided_search] = guide.calls, run_search(config, 0, 0, None, [task])[0]
+    assert runs["dives"][0] == [] and len(runs["orders"][0]) >= 7 and max(runs["orders"][0]) <= 8
+    np.testing.assert_array_equal(runs["dives"][1].window, runs["orders"][1].window)  # unguided: the same
+    with pytest.raises(RLLockError, match="--guided-search"):
+        GuideTrainConfig(guided_search="rollouts").validate()
 
 
 def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():

@@ -222,13 +222,13 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    from rllock.config import GUIDE_LABELS, GuideTrainConfig
+    from rllock.config import GUIDE_LABELS, GUIDED_SEARCHES, GuideTrainConfig
 
     p = subparsers.add_parser(
         "train-guide",
         help="train the guide network of rllock solve --guide on Ray (a curriculum of searches)",
     )
-    add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS})
+    add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS, "guided_search": GUIDED_SEARCHES})
     p.add_argument(
         "--resume",
         metavar="LOGDIR",
