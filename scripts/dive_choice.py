@@ -9,7 +9,7 @@ python scripts/dive_choice.py rate mario:58 runs/guide-mario --seed 0 --seconds 
 python scripts/dive_choice.py states mario:60 dives.npz --seed 0 --trials 150 --rollouts 2 --budget 2000
     dive states as the search makes them (`--horizon` pieces before the end; no guide needed), each
     labelled by ROLLOUTS restarts from it of BUDGET expansions (`solver.rollout_reach`)
-python scripts/dive_choice.py rank mario:60 dives.npz runs/guide-mario runs/guide-mario-b ...
+python scripts/dive_choice.py rank mario:60 dives.npz,more.npz runs/guide-mario runs/guide-mario-b ...
     how each guide (and the untrained network of the first one's config) ranks those states: Spearman
     of value against mean reach, and the rollouts won by the best-valued of GROUP states drawn at random
     (as a restart takes the best of its pool) against the group's mean
@@ -117,10 +117,10 @@ def states(args: argparse.Namespace) -> None:
 
 
 def rank(args: argparse.Namespace) -> None:
-    task, saved = parse_named_task(args.cell).task(), np.load(args.out)
-    dives = [State(row.astype(np.int16), int(saved["placed"])) for row in saved["labels"]]
-    reach = saved["reach"].mean(axis=1)
-    won = (saved["reach"] == 1.0).mean(axis=1)
+    task, saved = parse_named_task(args.cell).task(), [np.load(f) for f in args.out.split(",")]
+    dives = [State(row.astype(np.int16), int(s["placed"])) for s in saved for row in s["labels"]]
+    rollouts = np.concatenate([s["reach"] for s in saved])
+    reach, won = rollouts.mean(axis=1), (rollouts == 1.0).mean(axis=1)
     guides = [load_guide(g) for g in args.guides]
     first = guides[0]
     guides.append(

@@ -136,7 +136,8 @@ class SearchConfig:
     the restart goes on from the dive state the network values best among these and those earlier
     restarts left untaken; 1 goes on from the first, as the solver does. With 4, a guide taught mario
     solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2 of 9;
-    a second training of the same command, 2 of 8 (docs/benchmarks.md, "mario K=60 on 18 seeds").
+    two more trainings of the same command, 2 of 8 and 3 of 17 (docs/benchmarks.md, "mario K=60 on 18
+    seeds", "Which search the actors run").
     Tasks with at most `Guide.horizon` + 1 pieces have no dive state: there the guided search is the
     solver's."""
     dives_from: int = 2
