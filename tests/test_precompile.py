@@ -5,6 +5,7 @@ limit."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -15,7 +16,15 @@ from numba.core.registry import CPUDispatcher
 
 from rllock.core import compiled_checkers, compiled_sampler, winding
 from rllock.core.env import candidates_many, initial_state, make_task, sample_accepted
-from rllock.core.numba_cache import CORE, CoreSourcesLocator, numba_cache_root, sources_digest
+from rllock.core.numba_cache import (
+    CORE,
+    DAY,
+    USED,
+    CoreSourcesLocator,
+    numba_cache_root,
+    prune,
+    sources_digest,
+)
 from rllock.core.precompile import _layouts, compile_all
 from rllock.search.solver import solve
 
@@ -106,3 +115,26 @@ print(stats.cache_path, sum(stats.cache_hits.values()), sum(stats.cache_misses.v
     path, hits, misses = done.stdout.split()
     assert Path(path) == folder and int(hits) > 0 and int(misses) == 0
     assert not list((copy / "core").glob("__pycache__/*.nb*"))
+
+
+def test_the_folders_of_other_versions_unused_for_stale_days_are_removed(tmp_path):
+    now, current = 1_000 * DAY, "0123456789abcdef"
+    ages = {"aaaaaaaaaaaaaaaa": 40, "bbbbbbbbbbbbbbbb": 5, "cccccccccccccccc": 40, "notadigest": 40}
+    for name, days in ages.items():
+        (tmp_path / name).mkdir()
+        stamp = now - days * DAY
+        if name == "cccccccccccccccc":  # unmarked: its own modification time decides
+            os.utime(tmp_path / name, (stamp, stamp))
+        else:
+            (tmp_path / name / USED).touch()
+            os.utime(tmp_path / name / USED, (stamp, stamp))
+    (tmp_path / "bbbbbbbbbbbbbbbb" / "index.nbi").write_bytes(b"x")
+    assert sorted(p.name for p in prune(tmp_path, current, now)) == ["aaaaaaaaaaaaaaaa", "cccccccccccccccc"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [current, "bbbbbbbbbbbbbbbb", "notadigest"]
+    assert (tmp_path / current / USED).stat().st_mtime == now
+    assert prune(tmp_path, current, now + 0.5 * DAY) == []  # marked at most once a day
+    assert (tmp_path / current / USED).stat().st_mtime == now
+    # The version in use is never removed, and a version used again within STALE_DAYS is kept.
+    assert prune(tmp_path, "bbbbbbbbbbbbbbbb", now + 29 * DAY) == []
+    assert [p.name for p in prune(tmp_path, "bbbbbbbbbbbbbbbb", now + 31 * DAY)] == [current]
+    assert (numba_cache_root() / sources_digest(CORE) / USED).exists()  # this import marked its own

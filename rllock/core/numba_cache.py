@@ -11,6 +11,10 @@ source file of `rllock.core` together: a copy of the same sources anywhere on th
 constant frozen into compiled code) compiles afresh instead of loading code older than its sources.
 Numba's own `NUMBA_CACHE_DIR`, when set, still decides. Import this module before any `@njit(cache=True)`
 of the core: numba picks a function's cache folder when it is decorated.
+
+Each version of the sources compiles into a folder of its own (about 18 MB), so every update would leave
+one behind: a folder is marked when its version is imported (at most once a day), and the folders of
+other versions unmarked for STALE_DAYS are removed (`prune`).
 """
 
 from __future__ import annotations
@@ -18,6 +22,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import re
+import shutil
+import time
 from pathlib import Path
 
 from numba.core.caching import (
@@ -28,6 +35,10 @@ from numba.core.caching import (
 )
 
 CORE = Path(__file__).resolve().parent
+STALE_DAYS = 30.0
+USED = ".used"  # its modification time: when the folder's version was last imported
+DAY = 86_400.0
+DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
 def numba_cache_root() -> Path:
@@ -63,11 +74,36 @@ class CoreSourcesLocator(_SourceFileBackedLocatorMixin, _CacheLocator):
         return super().from_function(py_func, py_file)
 
 
+def prune(root: Path, current: str, now: float, stale_days: float = STALE_DAYS) -> list[Path]:
+    """Mark `current`'s folder under `root` used (unless it was within a day) and remove the folders of
+    other digests last used (or, unmarked, modified) more than `stale_days` before `now`. Returns those
+    removed; names that are not digests are never touched."""
+    marker = root / current / USED
+    if not marker.exists() or now - marker.stat().st_mtime > DAY:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.touch()
+        os.utime(marker, (now, now))
+    removed = []
+    for folder in root.iterdir():
+        if folder.name == current or not folder.is_dir() or not DIGEST.fullmatch(folder.name):
+            continue
+        used = folder / USED
+        if now - (used if used.exists() else folder).stat().st_mtime > stale_days * DAY:
+            shutil.rmtree(folder, ignore_errors=True)  # another process may be removing it too
+            removed.append(folder)
+    return removed
+
+
 def install() -> None:
     """Put the locator first, after numba's `NUMBA_CACHE_DIR` one (which yields when that is unset)."""
     classes = CacheImpl._locator_classes
     if CoreSourcesLocator not in classes:
         classes.insert(classes.index(UserProvidedCacheLocator) + 1, CoreSourcesLocator)
+    if not os.environ.get("NUMBA_CACHE_DIR"):
+        try:
+            prune(numba_cache_root(), sources_digest(CORE), time.time())
+        except OSError:  # an unwritable cache: numba then compiles in memory, as it would
+            pass
 
 
 install()
