@@ -358,7 +358,8 @@ class GuideTrainConfig:
     """How the actors' guided searches (every other search) use the latest guide: "dives", as `rllock
     solve --guide` does (`SearchConfig.dives`); "orders", its values order and prune every node's
     children within its horizon and there are no dives (`SearchConfig.guide_orders`), as the first
-    guide taught mario was trained (docs/benchmarks.md, "Which search the actors run")."""
+    guide taught mario was trained. Trained so again, a guide solved mario K=60 no more often than one
+    whose actors dive or the untrained network (docs/benchmarks.md, "Which search the actors run")."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
