@@ -21,14 +21,13 @@ import argparse
 import logging
 import time
 
-import jax
 import numpy as np
 from scipy.stats import spearmanr
 
 from rllock.core.env import State, initial_state
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import parse_named_task
-from rllock.search.guide import Guide, init_guide
+from rllock.search.guide import untrained_like
 from rllock.search.guide_checkpoint import load_guide
 from rllock.search.solver import SearchConfig, SearchStats, _dfs, rollout_reach, search
 
@@ -69,9 +68,7 @@ def trials(args: argparse.Namespace) -> None:
 
 def rate(args: argparse.Namespace) -> None:
     task, trained = parse_named_task(args.cell).task(), load_guide(args.guide)
-    untrained = Guide(
-        trained.config, init_guide(trained.config, jax.random.PRNGKey(0)), "untrained", trained.horizon
-    )
+    untrained = untrained_like(trained)
     config = SearchConfig(dives=args.dives, dives_from=args.dives_from)
     for g in (trained, untrained):  # compiled before any arm is timed
         g.values(task, [initial_state(task)], [1.0])
@@ -106,6 +103,7 @@ def states(args: argparse.Namespace) -> None:
         reach.append([rollout_reach(task, state, seed=s, expansions=args.budget) for s in seeds])
         labels.append(state.labels)
         log.info("trial %d: reach %s", trial, " ".join(f"{r:.2f}" for r in reach[-1]))
+        # After every state: a run stopped early keeps the minutes of restarts it spent.
         np.savez(args.out, labels=np.asarray(labels), reach=np.asarray(reach), placed=depth)
     won = np.asarray(reach) == 1.0
     log.info(
@@ -122,10 +120,7 @@ def rank(args: argparse.Namespace) -> None:
     rollouts = np.concatenate([s["reach"] for s in saved])
     reach, won = rollouts.mean(axis=1), (rollouts == 1.0).mean(axis=1)
     guides = [load_guide(g) for g in args.guides]
-    first = guides[0]
-    guides.append(
-        Guide(first.config, init_guide(first.config, jax.random.PRNGKey(0)), "untrained", first.horizon)
-    )
+    guides.append(untrained_like(guides[0]))
     groups = np.random.default_rng(args.seed).integers(len(dives), size=(args.groups, args.group))
     log.info("%d dive states, mean reach %.3f, rollouts won %.3f", len(dives), reach.mean(), won.mean())
     for guide in guides:

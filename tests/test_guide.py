@@ -277,7 +277,7 @@ def test_an_actors_guided_search_dives_or_values_every_nodes_children_as_configu
             guide=CONFIG, guided_search=guided_search, rollouts=1, rollout_expansions=5, probes=1, max_left=6
         )
         guide = _Counted(replace(_untrained(), horizon=6))
-        labelled, solved, placed, _ = run_search(config, 0, 0, guide, [task])  # type: ignore[arg-type]
+        _, solved, placed, _ = run_search(config, 0, 0, guide, [task])  # type: ignore[arg-type]
         assert solved and placed == task.pieces - 1
         runs[guided_search] = guide.calls, run_search(config, 0, 0, None, [task])[0]
     assert runs["dives"][0] == [] and len(runs["orders"][0]) >= 7 and max(runs["orders"][0]) <= 8

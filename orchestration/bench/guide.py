@@ -14,14 +14,12 @@ import logging
 import statistics
 from dataclasses import dataclass
 
-import jax
-
 from orchestration.bench.arms import warm_process
 from orchestration.bench.shapes import Cell, solver_cell
 from orchestration.bench.specs import parse_list
 from rllock.core.env import initial_state
 from rllock.search.curriculum import NamedTask, parse_named_task
-from rllock.search.guide import Guide, init_guide
+from rllock.search.guide import Guide, untrained_like
 from rllock.search.solver import SearchConfig
 
 log = logging.getLogger(__name__)
@@ -51,9 +49,7 @@ def bench_guide(
 ) -> list[GuideRow]:
     """Each cell's arms side by side per seed; `config` is every arm's search (its guide settings apply
     to the guided arms only)."""
-    untrained = Guide(
-        guide.config, init_guide(guide.config, jax.random.PRNGKey(0)), "untrained (seed 0)", guide.horizon
-    )
+    untrained = untrained_like(guide)
     guides = {"solver": None, "guided": guide, "untrained": untrained}
     rows = []
     for cell in cells:

@@ -216,3 +216,10 @@ class Guide:
         features = np.zeros((rows, GLOBALS), np.float32)
         window[: len(states)], features[: len(states)] = e.window, e.features
         return np.asarray(guide_values(self.params, window, features, config=self.config))[: len(states)]
+
+
+def untrained_like(guide: Guide) -> Guide:
+    """`guide`'s network at its initial weights (seed 0), with its horizon: the arm that shows what
+    learning changed (the same network for every guide of one config)."""
+    params = init_guide(guide.config, jax.random.PRNGKey(0))
+    return Guide(guide.config, params, "untrained (seed 0)", guide.horizon)
