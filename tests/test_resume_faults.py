@@ -1,12 +1,15 @@
-"""The trainer under faults, run as a user would: the `rllock train` command in a subprocess."""
+"""The trainer under faults and at the end of its budget, run as a user would: the `rllock train` command in
+a subprocess."""
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -136,10 +139,35 @@ def test_a_killed_actor_is_restarted_and_ctrl_c_then_saves_a_checkpoint_and_says
     assert _steps(logdir)[-1] >= before and (logdir / "replay.npz").exists()
 
 
-def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun(tmp_path):
-    """Slow validations (many episodes, many simulations) must be skipped, not run past the budget."""
+# What a successful run printed before: Ray retrying the calls of the actors it was told to kill, with a
+# raw colour code; Ray doubting the actors' restarts; JAX's warning of a fork after its threads started;
+# Ray's notice that it uses token authentication, its default.
+NOISE = (
+    "killed by `ray.kill`",
+    "(raylet)",
+    "\x1b[",
+    "core_worker.cc",
+    "constructor arguments in the object store",
+    "os.fork() was called",
+    "RuntimeWarning",
+    "Token authentication",
+)
+OUR_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ INFO (orchestration|learner|actors|rllock)\.")
+
+
+def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun_and_the_run_is_quiet(tmp_path):
+    """Slow validations (many episodes, many simulations) must be skipped, not run past the budget. The
+    run, ended by its budget with self-play batches in flight, is quiet: stderr holds the trainer's own
+    INFO lines and nothing else, no warnings from Ray or JAX that the run is fine without."""
     logdir = tmp_path / "run"
-    started = time.monotonic()
+    # The address file a `ray start` (or a test's Cluster) leaves behind, here of a cluster long gone: a
+    # run without --address starts its own Ray instead of joining it. A short folder: Ray's socket paths
+    # under it must stay within the 107 characters a Unix socket allows.
+    ray_tmp = tempfile.mkdtemp(prefix="rq", dir="/tmp")
+    os.makedirs(f"{ray_tmp}/ray")
+    with open(f"{ray_tmp}/ray/ray_current_cluster", "w") as f:
+        f.write("127.0.0.1:9")
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | {"RAY_TMPDIR": ray_tmp}
     # Slow on any machine: 512 episodes once were, but on a fast core they take 1-4 s and fit.
     slow = tiny_flags(
         validation_episodes=100_000,
@@ -148,9 +176,25 @@ def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun(tmp_path
     # Long enough for the first learner steps on a slow CI machine (1 minute, Ray's start included, once
     # ended there with none).
     minutes = 1.5
-    proc = _train(*slow, "--minutes", str(minutes), "--logdir", str(logdir))
-    out, _ = proc.communicate(timeout=300)
+    started = time.monotonic()
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "orchestration.cli", "train", *slow, "--minutes", str(minutes)]
+            + ["--logdir", str(logdir)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env=env,
+        )
+    finally:
+        shutil.rmtree(ray_tmp, ignore_errors=True)
     elapsed = time.monotonic() - started
-    assert proc.returncode == 0, out
+    assert proc.returncode == 0, proc.stderr
     assert elapsed <= minutes * 60 + 30, elapsed
-    assert "validation skipped" in out and _steps(logdir) and _steps(logdir)[-1] > 0
+    assert "validation skipped" in proc.stderr and _steps(logdir) and _steps(logdir)[-1] > 0
+    assert proc.stdout.startswith("train: ") and f"{_steps(logdir)[-1]} learner steps" in proc.stdout
+    for needle in NOISE:
+        assert needle not in proc.stderr, f"{needle!r} in:\n{proc.stderr}"
+    lines = proc.stderr.strip().splitlines()
+    assert lines and all(OUR_LINE.match(line) for line in lines), proc.stderr
+    assert "tensorboard" not in proc.stdout  # the one next step is the demo's last line, not one per command
