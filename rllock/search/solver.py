@@ -373,14 +373,16 @@ class _Expander:
 
     def _guess_next(self, states: list[State], futures: list[Future], busy: int) -> None:
         """Give the threads this node's samples leave idle the samples of the node the search will most
-        likely expand next: the children of the child with the most accepted continuations so far (the
-        last such, as `children_of` orders them), seeded from a copy of the generator as the search
-        will seed them if that child is the one it takes. A wrong guess costs the samples it started,
-        each on a thread that was idle when it started (the next node's samples may wait for them)."""
+        likely expand next: the child `children_of` will put last among those sampled so far (in the
+        remainder's order the first with a continuation, else the one with the most accepted
+        continuations, the last such), seeded from a copy of the generator as the search will seed
+        them if that child is the one it takes. A wrong guess costs the samples it started, each on a
+        thread that was idle when it started (the next node's samples may wait for them)."""
         done = [(f.result()[1], i) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
         if not done:
             return
-        best = max(done)[1]
+        by_remainder = self.config.by_remainder(self.task, self.task.pieces - states[0].placed)
+        best = min(i for _, i in done) if by_remainder else max(done)[1]
         grand = futures[best].result()[0]
         if states[best].placed + 1 >= self.target:
             return  # the next node is an assembly or samples nothing
