@@ -373,16 +373,15 @@ class _Expander:
 
     def _guess_next(self, states: list[State], futures: list[Future], busy: int) -> None:
         """Give the threads this node's samples leave idle the samples of the node the search will most
-        likely expand next: the child `children_of` will put last among those sampled so far (in the
-        remainder's order the first with a continuation, else the one with the most accepted
-        continuations, the last such), seeded from a copy of the generator as the search will seed
-        them if that child is the one it takes. A wrong guess costs the samples it started, each on a
-        thread that was idle when it started (the next node's samples may wait for them)."""
-        done = [(f.result()[1], i) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
+        likely expand next: the child `children_of` will put last among those sampled so far
+        (`pop_rank`), seeded from a copy of the generator as the search will seed them if that child is
+        the one it takes. A wrong guess costs the samples it started, each on a thread that was idle
+        when it started (the next node's samples may wait for them)."""
+        done = [(i, f.result()[1]) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
         if not done:
             return
         by_remainder = self.config.by_remainder(self.task, self.task.pieces - states[0].placed)
-        best = min(i for _, i in done) if by_remainder else max(done)[1]
+        best = max(done, key=lambda d: pop_rank(d[0], d[1], by_remainder))[0]
         grand = futures[best].result()[0]
         if states[best].placed + 1 >= self.target:
             return  # the next node is an assembly or samples nothing
@@ -445,8 +444,7 @@ class _Expander:
         by_remainder = config.by_remainder(task, task.pieces - 1 - state.placed)
         for i, (kid, (grand, count)) in enumerate(zip(kids, self.sample_all(kids, chunks))):
             if len(grand):
-                # In deep mode `chunks` come best first by the remainder's judgement (`tightest_subset`).
-                scored.append((-i if by_remainder else count, count, kid, grand))
+                scored.append((pop_rank(i, count, by_remainder), count, kid, grand))
         scored.sort(key=lambda t: t[0])
         most = max((count for _, count, _, _ in scored), default=1)
         children = [Child(kid, grand, count / most) for _, count, kid, grand in scored]
@@ -461,6 +459,14 @@ class _Expander:
         if not self.config.values_children():
             return children
         return _guided(self.task, children, guide, self.config)
+
+
+def pop_rank(index: int, count: int, by_remainder: bool) -> tuple[int, int]:
+    """Where the child made by a node's `index`-th chunk, with `count` accepted continuations, goes in
+    its node's pop order (the greatest is tried first): in the remainder's order the first chunk first
+    (in deep mode the chunks come best first by its judgement, `tightest_subset`), else the most
+    continuations first, the last such of equal counts."""
+    return (-index if by_remainder else count, index)
 
 
 def _dfs(
