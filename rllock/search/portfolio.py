@@ -9,20 +9,16 @@ On one machine worker 0 runs in this process, as a thread (it starts at once, wi
 has compiled); the others are spawned processes. Worker 0 may also sample a node's children on threads
 (the same search node for node, sooner: `solver.SamplingPool`). A second seed pays by the spread of run
 times, a second thread surely but by less, and by how busy the search keeps it: two threads ran one
-search 1.5-1.7x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where a node's samples are
-few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start (a spawned worker
-waits before its first node: a search that keeps its threads busy loses little to a portfolio it would
-not use), and once the lent workers have started up (their start-up takes CPU from worker 0's threads)
-the crew measures how busy its threads are, the CPU seconds of the samples begun since over the wall
-time, every BALANCE_EVERY_SECONDS. Once the share since then is below KEEP_WHILE_BUSY of the T threads (judged
-from JUDGE_AFTER_SECONDS on), the lent workers go on, each on its core, and worker 0 samples alone
-for the rest of the run. The measure is a ratio of two times on one machine, so a slower or faster
-machine decides alike; the milliseconds a sample costs, which decided before, did not (docs/benchmarks.md,
-"Every core, a sixth time").
-
-Why a worker pauses itself rather than being stopped by a signal: SIGSTOP could catch it while its queue's
-feeder thread held the lock that every worker's messages share, and worker 0's assembly then waited for
-the time limit behind it (seen once in a benchmark: 54 of 54 pieces placed, "none in 60 s").
+search 1.5-1.8x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where a node's samples are
+few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start, and those
+workers (the lent ones) are not started while it has them: a spawned process's start-up (imports, the
+compiled code loaded) took CPU from worker 0's threads on every seed, also where it was never let go
+on. From the end of worker 0's first sample on, the crew measures how busy its threads are, the CPU
+seconds of its samples over the wall time, every BALANCE_EVERY_SECONDS. Once that share is below
+KEEP_WHILE_BUSY of the T threads (judged from JUDGE_AFTER_SECONDS on), the lent workers are started, each
+on its core, and worker 0 samples alone for the rest of the run. The measure is a ratio of two times on
+one machine, so a slower or faster machine decides alike; the milliseconds a sample costs, which decided
+before, did not (docs/benchmarks.md, "Every core, a sixth time" and "a ninth time").
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -61,9 +57,9 @@ log = logging.getLogger(__name__)
 
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
-# Worker 0 keeps the cores of the workers it pauses while its threads are busy this share of the time
-# since the lent workers started up, judged from JUDGE_AFTER_SECONDS on. Chosen from five hard cells on 2
-# cores (docs/benchmarks.md, "Every core, a sixth time"), by the share 2 s after the start-up, seeds 0
+# Worker 0 keeps the cores of the lent workers while its threads are busy this share of the time since
+# its first sample ended, judged from JUDGE_AFTER_SECONDS on. Chosen from five hard cells on 2 cores
+# (docs/benchmarks.md, "Every core, a sixth time"), by the share 2 s after the lent workers' start-up, seeds 0
 # and 1: 0.56-0.58 (cube4 K=9) and 0.69-0.74 (desia-dog K=50, 0.76 at most later), where two seeds gained
 # more than two threads; 0.80-0.82 (bunny mesh at 16, K=55), where both gained about as much; 0.84-0.89
 # (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more.
@@ -111,35 +107,11 @@ def _work(
         out.put(("done", worker, stats))
 
 
-PAUSE_POLL_SECONDS = 0.5  # a paused worker looks at the stop event at least this often
-
-
-class _Pausable:
-    """The stop test of a spawned worker: while `go` is clear (worker 0 has its core) it waits there,
-    between two node expansions, then says whether `halt` is set. The first time it is asked, before
-    the worker's first node, it calls `started()`: the worker's start-up is over."""
-
-    def __init__(self, halt: Any, go: Any, started: Callable[[], None]) -> None:
-        self.halt, self.go = halt, go
-        self.started: Callable[[], None] | None = started
-
-    def is_set(self) -> bool:
-        if self.started is not None:
-            self.started()
-            self.started = None
-        while not self.go.is_set() and not self.halt.is_set():
-            self.go.wait(PAUSE_POLL_SECONDS)
-        return self.halt.is_set()
-
-
-def _work_locally(out: Any, halt: Any, go: Any, *job: Any) -> None:
-    """`_work` in a spawned process, paused while `go` is clear (when it is a worker whose core may be
-    lent, else None); a lent worker says ("started", its number) once it has started up."""
+def _work_locally(out: Any, halt: Any, *job: Any) -> None:
+    """`_work` in a spawned process."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if _die_with_parent():
-        worker = job[5]
-        stop = halt if go is None else _Pausable(halt, go, lambda: out.put(("started", worker, None)))
-        _work(out, stop, *job)
+        _work(out, halt, *job)
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
@@ -147,8 +119,8 @@ PR_SET_PDEATHSIG = 1  # prctl(2)
 
 def _die_with_parent() -> bool:
     """Whether to go on: on Linux the kernel is asked to SIGKILL this worker when the thread that started
-    it ends, so a paused worker, waiting for a word that will not come, does not stay behind when its
-    parent is killed outright. False if the parent is already gone."""
+    it ends, so a worker does not search on, alone, until its time limit when its parent is killed
+    outright. False if the parent is already gone."""
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -159,7 +131,7 @@ def _die_with_parent() -> bool:
 
 def shares_cores(busy: float, seconds: float) -> bool:
     """Whether worker 0 should go on sampling on the lent workers' cores, given the share `busy` of the
-    `seconds` since the lent workers started up that its threads were busy: while it is at least
+    `seconds` since its first sample ended that its threads were busy: while it is at least
     KEEP_WHILE_BUSY, judged from JUDGE_AFTER_SECONDS on. Once they went apart it is not asked again:
     alone, worker 0 cannot show what its threads would do."""
     return seconds < JUDGE_AFTER_SECONDS or busy >= KEEP_WHILE_BUSY
@@ -211,9 +183,7 @@ def portfolio_search(
                 crew.check_alive(done)
                 continue
             kind, worker, payload = message
-            if kind == "started":
-                crew.started(worker)
-            elif kind == "found":
+            if kind == "found":
                 key = assembly_key(payload.labels)
                 if key not in seen:
                     seen.add(key)
@@ -245,66 +215,53 @@ def portfolio_search(
 class _LocalCrew:
     """Worker 0 as a thread of this process (it starts at once, with what this process has compiled), on a
     sampling pool of up to `children` threads, one a worker; the others as spawned processes, the first
-    of them (`lent`) paused while worker 0 has their cores (module docstring), which it has from the
-    start; a multiprocessing queue, a stop event, and an event that lets the lent workers go on."""
+    of them (`lent`) started only when worker 0 gives their cores back (module docstring); a
+    multiprocessing queue and a stop event."""
 
     def __init__(self, jobs: list[tuple], children: int) -> None:
         context = mp.get_context("spawn")  # forking a process that holds numba or JAX state is not safe
         self.out, self.event = context.Queue(), context.Event()
         threads = min(len(jobs), children)
         self.pool = SamplingPool.start(threads, allowed=threads > 1)
-        self.go = context.Event()  # clear: the lent workers wait
         self.first = threading.Thread(
             target=_work, args=(self.out, self.event, *jobs[0][:-1], self.pool), daemon=True
         )
         self.lent = threads - 1  # workers 1..lent, whose cores worker 0 takes
         self.processes = [
-            context.Process(
-                target=_work_locally,
-                args=(self.out, self.event, self.go if i <= self.lent else None, *job),
-                daemon=True,
-            )
-            for i, job in enumerate(jobs[1:], start=1)
+            context.Process(target=_work_locally, args=(self.out, self.event, *job), daemon=True)
+            for job in jobs[1:]
         ]
-        if not self.pool.allowed:
-            self.go.set()
-        self.since: float | None = None  # when the lent workers had started up
         self.looked = 0.0  # when the share was last looked at
-        self.waiting: set[int] = set()  # the lent workers that have started up
 
     def start(self) -> None:
         self.first.start()
-        for p in self.processes:
+        for p in self.processes[self.lent :]:
             p.start()
 
-    def started(self, worker: int) -> None:
-        self.waiting.add(worker)
-        if len(self.waiting) == self.lent:
-            self.since = time.monotonic()
-            self.pool.count_from(self.since)
-
     def balance(self, done: set[int]) -> None:
-        """Every BALANCE_EVERY_SECONDS once the lent workers have started up (their start-up takes CPU
-        from worker 0's threads): worker 0 goes on with the lent workers' cores, or gives them back for
-        good, by how busy its threads have been since (`shares_cores`); at once when it is done."""
+        """Every BALANCE_EVERY_SECONDS once worker 0's first sample is over: worker 0 goes on with the lent
+        workers' cores, or gives them back for good, by how busy its threads have been since
+        (`shares_cores`); at once when it is done."""
         now, pool = time.monotonic(), self.pool
         if not pool.allowed:
             return
         if 0 in done:
             self.give_back("worker 0 has ended")
             return
-        if self.since is None or now - self.looked < BALANCE_EVERY_SECONDS:
+        since = pool.counting_since
+        if since is None or now - self.looked < BALANCE_EVERY_SECONDS:
             return
         self.looked = now
-        busy = pool.counted / max(now - self.since, 1e-9) / pool.threads
-        log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - self.since)
-        if not shares_cores(busy, now - self.since):
+        busy = pool.counted / max(now - since, 1e-9) / pool.threads
+        log.debug("worker 0's %d threads busy %.0f%% of %.1f s", pool.threads, 100 * busy, now - since)
+        if not shares_cores(busy, now - since):
             self.give_back(f"worker 0's {pool.threads} threads busy {busy:.0%} of the time")
 
     def give_back(self, why: str) -> None:
-        """The lent workers go on, each on its core, and worker 0 samples alone, for good."""
+        """The lent workers start, each on its core, and worker 0 samples alone, for good."""
         self.pool.allowed = False
-        self.go.set()
+        for p in self.processes[: self.lent]:
+            p.start()
         log.info("%s: every worker searches on a core of its own", why)
 
     def get(self, timeout: float) -> tuple | None:
@@ -321,7 +278,6 @@ class _LocalCrew:
 
     def halt(self) -> None:
         self.event.set()
-        self.go.set()  # a paused worker wakes and sees the event at once
 
     def running(self) -> bool:
         return self.first.is_alive() or any(p.is_alive() for p in self.processes)
@@ -331,7 +287,8 @@ class _LocalCrew:
         for p in self.processes:
             if p.is_alive():
                 p.terminate()
-            p.join(timeout=1.0)
+            if p.pid is not None:  # a lent worker is started only if worker 0 gave its core back
+                p.join(timeout=1.0)
         self.first.join(timeout=JOIN_SECONDS)
         self.pool.executor.shutdown(cancel_futures=True)
 
@@ -387,9 +344,6 @@ class _RayCrew:
             return self.out.get(timeout=timeout)
         except Empty:
             return None
-
-    def started(self, worker: int) -> None:
-        """Ray workers do not wait for a lent core."""
 
     def balance(self, done: set[int]) -> None:
         """Nothing to share: each Ray worker has its one CPU."""

@@ -257,9 +257,10 @@ THREADED_FROM_SECONDS = 0.5e-3
 @dataclass
 class SamplingPool:
     """The threads a node's children are sampled on, a running mean of one sample's seconds, and the
-    seconds of the samples begun since a moment (`count_from`; each sample's CPU time on the thread
-    that ran it). A portfolio (`rllock.search.portfolio`) turns its worker 0's threads off (`allowed`)
-    while the other workers have the cores; the figures are kept either way.
+    seconds of the samples begun since the first ended (`counted` from `counting_since`; each
+    sample's CPU time on the thread that ran it: the first loads the compiled sampler, most of a
+    second where nothing has yet). A portfolio (`rllock.search.portfolio`) turns its worker 0's
+    threads off (`allowed`) while the other workers have the cores; the figures are kept either way.
     `guessed` counts the samples run ahead for a guessed next node (`_Expander`), `reused` those of
     them the search then took."""
 
@@ -269,8 +270,7 @@ class SamplingPool:
     allowed: bool = True
     guessed: int = 0
     reused: int = 0
-    counted_from: float = 0.0
-    """`counted` sums the samples begun from this moment (`time.monotonic()`) on."""
+    counting_since: float | None = None  # `time.monotonic()`
     counted: float = 0.0
     local: threading.local = field(default_factory=threading.local)
 
@@ -296,16 +296,13 @@ class SamplingPool:
     def worth_it(self, samples: int) -> bool:
         return self.allowed and samples > 1 and self.sample_seconds >= THREADED_FROM_SECONDS
 
-    def count_from(self, moment: float) -> None:
-        """`counted` from now on sums the samples begun at `moment` or later: a sample running then may
-        have begun long before (the first, which loads the compiled sampler, takes most of a second)."""
-        self.counted_from, self.counted = moment, 0.0
-
     def took(self, seconds: float, began: float) -> None:
         """A sample begun at `began` (`time.monotonic()`) took `seconds` of its thread's CPU time."""
         # Called from the pool's threads at once: an update lost between two of them only blurs a mean.
         self.sample_seconds += 0.1 * (seconds - self.sample_seconds)
-        if began >= self.counted_from:
+        if self.counting_since is None:
+            self.counting_since = time.monotonic()
+        elif began >= self.counting_since:
             self.counted += seconds
 
 
