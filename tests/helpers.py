@@ -3,9 +3,14 @@ config, and running the `rllock` command."""
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
+import json
+import os
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -162,8 +167,71 @@ def tiny_flags(config: TrainConfig = TINY, **changes) -> list[str]:
     return flags
 
 
-def run_cli(*args: str, timeout: float = 300):
-    """Run the installed `rllock` command in a subprocess: (exit code, stdout, stderr)."""
+# Commands with these flags start processes that import the command's own main module (multiprocessing's
+# spawn) or measure what their processes cost: they run in a fresh interpreter, as a user runs them.
+FRESH_FLAGS = frozenset({"--workers", "--threads", "--address"})
+
+
+class _CliServer:
+    """`tests/cli_server.py`: forks the `rllock` command with its imports already paid, one request at a
+    time (a pytest worker runs one test at a time). Made for the environment it was started in."""
+
+    def __init__(self) -> None:
+        self.env = _environment()
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("cli_server.py"))],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.requests, self.replies = self.proc.stdin, self.proc.stdout
+        if self.replies.readline() != "ready\n":
+            raise RuntimeError("tests/cli_server.py did not start")
+        atexit.register(self.close)
+
+    def run(self, args: list[str], timeout: float) -> tuple[int, str, str]:
+        with tempfile.TemporaryDirectory(prefix="rllock-cli-") as folder:
+            out, err = Path(folder, "stdout"), Path(folder, "stderr")
+            request = {"args": args, "cwd": os.getcwd(), "out": str(out), "err": str(err), "timeout": timeout}
+            self.requests.write(json.dumps(request) + "\n")
+            self.requests.flush()
+            line = self.replies.readline()
+            if not line:
+                raise RuntimeError("tests/cli_server.py died")
+            reply = json.loads(line)
+            if reply.get("timeout"):
+                raise subprocess.TimeoutExpired(["rllock", *args], timeout)
+            return reply["code"], out.read_text(), err.read_text()
+
+    def close(self) -> None:
+        self.requests.close()
+        self.proc.wait(timeout=30)
+
+
+_server: list[_CliServer] = []
+
+
+def _environment() -> dict[str, str]:
+    """The environment a command would get, less what pytest changes from test to test."""
+    return {k: v for k, v in os.environ.items() if k != "PYTEST_CURRENT_TEST"}
+
+
+def run_cli(*args: str, timeout: float = 300) -> tuple[int, str, str]:
+    """Run the `rllock` command (`python -m orchestration.cli ARGS`) as a process of its own: (exit code,
+    stdout, stderr). Forked from `tests/cli_server.py`, which has imported it already, unless the
+    command starts processes (`FRESH_FLAGS`); a server is started again for a changed environment."""
+    if not FRESH_FLAGS.isdisjoint(args):
+        return _fresh_cli(args, timeout)
+    if _server and (_server[0].proc.poll() is not None or _server[0].env != _environment()):
+        _server.pop().close()
+    if not _server:
+        _server.append(_CliServer())
+    return _server[0].run(list(args), timeout)
+
+
+def _fresh_cli(args: tuple[str, ...], timeout: float) -> tuple[int, str, str]:
     proc = subprocess.run(
         [sys.executable, "-m", "orchestration.cli", *args], capture_output=True, text=True, timeout=timeout
     )
