@@ -240,12 +240,47 @@ def guide_step(
     return optax.apply_updates(params, updates), opt_state, losses
 
 
-class GuideLearner(AdamState):
-    """The guide network's learner: its parameters, optimizer state, step and PRNG key (`AdamState`)."""
+@jax.jit
+def moving_average(average, params, decay):
+    """One step of an exponential moving average of the weights: decay * average + (1 - decay) * params."""
+    return jax.tree.map(lambda a, p: decay * a + (1.0 - decay) * p, average, params)
 
-    def __init__(self, config: GuideConfig, learning_rate: float, key: jax.Array, rank_weight: float = 0.0):
+
+class GuideLearner(AdamState):
+    """The guide network's learner: its parameters, optimizer state, step and PRNG key (`AdamState`),
+    and with `weight_average` > 0 a moving average of its parameters, which is the guide (`guide`)."""
+
+    def __init__(
+        self,
+        config: GuideConfig,
+        learning_rate: float,
+        key: jax.Array,
+        rank_weight: float = 0.0,
+        weight_average: float = 0.0,
+    ):
         super().__init__(partial(init_guide, config), learning_rate, key)
-        self.config, self.rank_weight = config, rank_weight
+        self.config, self.rank_weight, self.weight_average = config, rank_weight, weight_average
+        self.average = self.params
+
+    @property
+    def guide(self) -> dict:
+        """The weights the actors search with and checkpoints keep as the guide."""
+        return self.average if self.weight_average else self.params
+
+    def state(self) -> dict:
+        """As `AdamState.state`, with "params" the guide (what `load_guide` reads) and, when averaging,
+        the learner's own parameters under "learner_params"."""
+        state = super().state()
+        if self.weight_average:
+            state |= {"params": self.average, "learner_params": self.params}
+        return state
+
+    def load_state(self, state: dict) -> None:
+        super().load_state(state)
+        if self.weight_average:
+            self.average, self.params = state["params"], state["learner_params"]
+        else:
+            self.average = self.params
 
     def update(self, sample: dict[str, np.ndarray]) -> tuple[float, float]:
         """One step on a `GuideBuffer.sample`; returns its (value loss, sibling loss)."""
@@ -258,5 +293,7 @@ class GuideLearner(AdamState):
         self.params, self.opt_state, (value, rank) = guide_step(
             self.params, self.opt_state, batch, self.rank_weight, config=self.config, optimizer=self.optimizer
         )
+        if self.weight_average:
+            self.average = moving_average(self.average, self.params, self.weight_average)
         self.step += 1
         return float(value), float(rank)

@@ -132,7 +132,11 @@ class _GuideRun:
         self.config, self.began = config, began
         self.logdir = Path(config.logdir)
         self.learner = GuideLearner(
-            config.guide, config.guide_learning_rate, jax.random.PRNGKey(config.seed), config.rank_weight
+            config.guide,
+            config.guide_learning_rate,
+            jax.random.PRNGKey(config.seed),
+            config.rank_weight,
+            config.weight_average,
         )
         self.counters, self.sessions = GuideCounters(), []
         if resume:
@@ -194,7 +198,7 @@ class _GuideRun:
         c, config = self.counters, self.config
         deadline = self.began + 60 * config.minutes
         self.started, self.calls = 0, Calls()
-        self.weights = [ray.put(jax.device_get(self.learner.params))]
+        self.weights = [ray.put(jax.device_get(self.learner.guide))]
         for _ in range(self._actors()):
             self._hand(self._new_actor())
         log.info(
@@ -244,7 +248,7 @@ class _GuideRun:
             self._count(report)
             self._hand(actor)
         if can_learn and self._learn():
-            self.weights = [ray.put(jax.device_get(self.learner.params))]
+            self.weights = [ray.put(jax.device_get(self.learner.guide))]
 
     def _count(self, report: SearchReport) -> None:
         c = self.counters
@@ -295,7 +299,7 @@ class _GuideRun:
             nodes = ray.get(self.buffer.nodes.remote(kept_out, JUDGED_NODES, step))
             if not len(nodes["target"]):
                 return
-            found[name] = judge(self.learner.params, self.config.guide, nodes)
+            found[name] = judge(self.learner.guide, self.config.guide, nodes)
             for key, value in found[name].items():
                 self.writer.add_scalar(f"{name}/{key}", value, step)
         held, trained = found["heldout"], found["trained"]

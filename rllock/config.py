@@ -375,6 +375,10 @@ class GuideTrainConfig:
     """States per learner step."""
     guide_learning_rate: float = 1e-3
     """Adam's learning rate."""
+    weight_average: float = 0.0
+    """With a decay in (0, 1), e.g. 0.99: the actors, the held-out judgement and the checkpoints' guide
+    use an exponential moving average of the learner's weights (the learner steps on its own), which
+    moves less from one checkpoint to the next than the last step's weights do. 0: the last weights."""
     replay_ratio: float = 8.0
     """At most this many sampled states per state the searches produced."""
     publish_every: int = 50
@@ -400,6 +404,8 @@ class GuideTrainConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise RLLockError(f"--{name.replace('_', '-')} must be positive, got {value}")
+        if not 0 <= self.weight_average < 1:
+            raise RLLockError(f"--weight-average must be in [0, 1), got {self.weight_average}")
         if self.rank_weight < 0:
             raise RLLockError(f"--rank-weight must be >= 0, got {self.rank_weight}")
         if self.max_learner_steps is not None and self.max_learner_steps < 1:

@@ -519,6 +519,47 @@ def test_the_guide_learner_fits_the_buffers_targets_and_orders_siblings():
     assert last[0] < 0.7 * first[0] and last[1] < 0.7 * first[1]
 
 
+def test_averaged_weights_are_the_guide_a_checkpoint_keeps_and_a_resume_restores_both(tmp_path):
+    rng = np.random.default_rng(2)
+    batch = {
+        "window": rng.integers(0, 2, size=(16, 8, 8, 8, CHANNELS)).astype(np.int8),
+        "features": rng.random((16, GLOBALS)).astype(np.float32),
+        "target": rng.random(16).astype(np.float32),
+        "paired": np.zeros(8, bool),
+    }
+    decay = 0.75
+    averaged = GuideLearner(CONFIG, 1e-2, jax.random.PRNGKey(3), weight_average=decay)
+    plain = GuideLearner(CONFIG, 1e-2, jax.random.PRNGKey(3))
+    assert plain.guide is plain.params
+    # A plain running average over each step's weights, from the initial ones.
+    want = [np.asarray(w, np.float64) for w in jax.tree.leaves(averaged.params)]
+    for _ in range(5):
+        averaged.update(batch)
+        plain.update(batch)
+        stepped = jax.tree.leaves(averaged.params)
+        want = [decay * a + (1 - decay) * np.asarray(p) for a, p in zip(want, stepped)]
+    for a, w in zip(jax.tree.leaves(averaged.guide), want):
+        np.testing.assert_allclose(a, w, rtol=1e-5, atol=1e-6)
+    # The learner itself steps as without averaging; the guide is not its last weights.
+    for a, b in zip(jax.tree.leaves(averaged.params), jax.tree.leaves(plain.params)):
+        np.testing.assert_array_equal(a, b)
+    last = jax.tree.leaves(plain.params)
+    assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(averaged.guide), last))
+    config = GuideTrainConfig(guide=CONFIG, weight_average=decay)
+    _save_guide(tmp_path / "run", averaged, config)
+    for a, b in zip(jax.tree.leaves(load_guide(tmp_path / "run").params), jax.tree.leaves(averaged.guide)):
+        np.testing.assert_array_equal(a, b)
+    resumed = GuideLearner(CONFIG, 1e-2, jax.random.PRNGKey(9), weight_average=decay)
+    step_dir = tmp_path / "run" / "checkpoints" / str(averaged.step)
+    resumed.load_state(orbax_io.restore_like(step_dir, resumed.state()))
+    averaged.update(batch)
+    resumed.update(batch)
+    for a, b in zip(jax.tree.leaves(resumed.state()), jax.tree.leaves(averaged.state())):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    with pytest.raises(RLLockError, match="--weight-average"):
+        replace(config, weight_average=1.0).validate()
+
+
 def test_sibling_pairs_are_drawn_from_the_ring_as_a_brute_force_search_finds_them():
     rng = np.random.default_rng(1)
     buffer = GuideBuffer(50, 4)
