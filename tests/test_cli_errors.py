@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from helpers import run_cli
+from helpers import _fresh_cli, run_cli
 
 from rllock.files.checkpoint import SHIPPED
 
@@ -224,3 +224,21 @@ def test_time_limit_takes_a_positive_number():
     from orchestration.cli.common import positive_float
 
     assert positive_float("2.5") == 2.5
+
+
+def test_the_forked_command_answers_as_a_fresh_interpreter_does(data, tmp_path, monkeypatch):
+    """`run_cli` forks the command from a process that imported it (`tests/cli_server.py`): the same
+    exit status, stdout and stderr as `python -m orchestration.cli` in a new interpreter, also where the
+    command reads its working folder."""
+    (tmp_path / "bad.json").write_text("{not json")
+    cube = str(data / "published" / "Cube_4x4x4_K9.puz")
+    monkeypatch.chdir(tmp_path)
+    for args in (
+        ("verify", cube, "--removal", "path", "--json"),
+        ("verify", cube, "--json"),
+        ("verify", "bad.json"),
+        ("solve", "--shape", "teapot", "--pieces", "3", "--out", "out"),
+        ("frobnicate",),
+    ):
+        forked, fresh = run_cli(*args), _fresh_cli(args, 120)
+        assert forked == fresh and forked[0] in (0, 1, 2), (args, forked, fresh)
