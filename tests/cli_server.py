@@ -22,16 +22,21 @@ import time
 
 def _child(request: dict) -> None:
     """Become the command: never returns (`sys.exit` ends this forked process as the command would)."""
-    stdin = os.open(os.devnull, os.O_RDONLY)
-    os.dup2(stdin, 0)
-    for fd, path in ((1, request["out"]), (2, request["err"])):
-        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), fd)
-    sys.stdin = open(os.devnull)  # the server's stdin buffer holds the next requests, not the command's
+    # Descriptors 0-2 only, as a fresh interpreter has: each file is opened, moved there and closed.
+    for fd, path, flags in (
+        (0, os.devnull, os.O_RDONLY),
+        (1, request["out"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC),
+        (2, request["err"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC),
+    ):
+        opened = os.open(path, flags, 0o600)
+        os.dup2(opened, fd)
+        os.close(opened)
+    # The server's stdin buffer holds the next requests, not the command's input.
+    sys.stdin = open(0, closefd=False)
     os.chdir(request["cwd"])
     from orchestration.cli.main import main
 
     sys.argv = [request["entry"], *request["args"]]
-
     sys.exit(main(request["args"]))
 
 
