@@ -776,6 +776,23 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
         assert code == 2 and err.count("\n") == 1 and words in err, err
     code, out, err = run_cli(*bench, "--cells", "cube4:6", "--dives", "0")
     assert code == 2 and err.count("\n") == 1 and "--dives must be at least 1" in err, err
+    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--untrained-seed", "-1")
+    assert code == 2 and err.count("\n") == 1 and "--untrained-seed must be at least 0" in err, err
+
+
+def test_untrained_arms_of_other_seeds_are_other_initial_networks():
+    from rllock.search.guide import untrained_like
+
+    trained = Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(7)), "trained", horizon=9)
+    task = make_task("cube4", 6)
+    states = [initial_state(task)]
+    for seed in (0, 1):
+        arm = untrained_like(trained, seed)
+        assert arm.horizon == 9 and arm.source == f"untrained (seed {seed})"
+        for a, b in zip(jax.tree.leaves(arm.params), jax.tree.leaves(_untrained(seed).params)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    values = [untrained_like(trained, s).values(task, states, [1.0]) for s in (0, 1)]
+    assert not np.allclose(values[0], values[1])
 
 
 def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):

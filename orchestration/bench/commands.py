@@ -121,6 +121,13 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         help="the first restart that dives; those before are the solver's (SearchConfig.dives_from; "
         "default: the search's own)",
     )
+    p.add_argument(
+        "--untrained-seed",
+        type=int,
+        default=0,
+        help="the seed of the untrained arm's initial weights: other seeds show how far untrained "
+        "networks differ among themselves (default 0)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_guide)
 

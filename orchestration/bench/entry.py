@@ -389,7 +389,17 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         dives_from=config.dives_from if args.dives_from is None else args.dives_from,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
-    rows = bench_guide(cells, guide, seeds=seeds, arms=arms, time_limit=args.time_limit, config=config)
+    if args.untrained_seed < 0:
+        raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
+    rows = bench_guide(
+        cells,
+        guide,
+        seeds=seeds,
+        arms=arms,
+        time_limit=args.time_limit,
+        config=config,
+        untrained_seed=args.untrained_seed,
+    )
     if args.json:
         sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "rows": rows_json(rows)}) + "\n")
     else:

@@ -46,10 +46,11 @@ def bench_guide(
     arms: list[str],
     time_limit: float,
     config: SearchConfig = SearchConfig(),
+    untrained_seed: int = 0,
 ) -> list[GuideRow]:
     """Each cell's arms side by side per seed; `config` is every arm's search (its guide settings apply
-    to the guided arms only)."""
-    untrained = untrained_like(guide)
+    to the guided arms only); the untrained arm's initial weights are drawn with `untrained_seed`."""
+    untrained = untrained_like(guide, untrained_seed)
     guides = {"solver": None, "guided": guide, "untrained": untrained}
     rows = []
     for cell in cells:

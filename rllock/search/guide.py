@@ -218,8 +218,9 @@ class Guide:
         return np.asarray(guide_values(self.params, window, features, config=self.config))[: len(states)]
 
 
-def untrained_like(guide: Guide) -> Guide:
-    """`guide`'s network at its initial weights (seed 0), with its horizon: the arm that shows what
-    learning changed (the same network for every guide of one config)."""
-    params = init_guide(guide.config, jax.random.PRNGKey(0))
-    return Guide(guide.config, params, "untrained (seed 0)", guide.horizon)
+def untrained_like(guide: Guide, seed: int = 0) -> Guide:
+    """`guide`'s network at initial weights drawn with `seed`, with its horizon: the arm that shows what
+    learning changed (for one seed, the same network for every guide of one config; other seeds show
+    how far untrained networks differ among themselves)."""
+    params = init_guide(guide.config, jax.random.PRNGKey(seed))
+    return Guide(guide.config, params, f"untrained (seed {seed})", guide.horizon)
