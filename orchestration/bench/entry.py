@@ -380,6 +380,8 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
     for flag, value in (("--dives", args.dives), ("--dives-from", args.dives_from)):
         if value is not None and value < 1:
             raise RLLockError(f"{flag} must be at least 1, got {value}")
+    if args.untrained_seed < 0:
+        raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
     config = replace(
         config,
         backjump=args.backjump,
@@ -389,8 +391,6 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         dives_from=config.dives_from if args.dives_from is None else args.dives_from,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
-    if args.untrained_seed < 0:
-        raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
     rows = bench_guide(
         cells,
         guide,
