@@ -15,7 +15,7 @@ from orchestration.train import train
 from rllock.errors import RLLockError
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
-STEPS = 30
+STEPS = 60
 
 
 _RUNS: dict[str, tuple] = {}
