@@ -36,7 +36,7 @@ log = logging.getLogger("dive_choice")
 
 def trials(args: argparse.Namespace) -> None:
     task, guide = parse_named_task(args.cell).task(), load_guide(args.guide)
-    guide = untrained_like(guide) if args.untrained else guide
+    guide = untrained_like(guide, args.untrained_seed) if args.untrained else guide
     config, target = SearchConfig(), task.pieces - 1
     depth = target - guide.horizon
     best_deep, random_deep = [], []
@@ -148,6 +148,7 @@ def main() -> None:
     p.add_argument("--dives-from", type=int, default=2, help="rate: the first restart that dives")
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--untrained", action="store_true", help="trials: the initial weights")
+    p.add_argument("--untrained-seed", type=int, default=0, help="trials: the initial weights' seed")
     p.add_argument("--budget", type=int, default=2000, help="node expansions of each restart (trials)")
     p.add_argument("--seconds", type=float, default=100.0, help="seconds per arm (rate)")
     p.add_argument("--horizon", type=int, default=20, help="states: pieces left at a dive state")
