@@ -2,7 +2,8 @@
 
 python scripts/dive_choice.py trials mario:58 runs/guide-mario --seed 3 --trials 300 --dives 16
     each trial: DIVES dives to the guide's horizon, then one restart (BUDGET expansions) from the
-    best-valued dive state and one from a dive state drawn at random; how deep each went
+    best-valued dive state and one from a dive state drawn at random; how deep each went (`--untrained
+    --untrained-seed S`: the guide's network at initial weights drawn with S)
 python scripts/dive_choice.py rate mario:58 runs/guide-mario --seed 0 --seconds 100 --dives 4
     assemblies found in SECONDS by the solver, and by restarts from dives chosen by the trained and by
     the untrained guide (`search` with `dives`, the search's own order of children), one after another
