@@ -786,12 +786,12 @@ def test_untrained_arms_of_other_seeds_are_other_initial_networks():
     trained = Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(7)), "trained", horizon=9)
     task = make_task("cube4", 6)
     states = [initial_state(task)]
-    for seed in (0, 1):
-        arm = untrained_like(trained, seed)
+    arms = [untrained_like(trained, seed) for seed in (0, 1)]
+    for seed, arm in enumerate(arms):
         assert arm.horizon == 9 and arm.source == f"untrained (seed {seed})"
         for a, b in zip(jax.tree.leaves(arm.params), jax.tree.leaves(_untrained(seed).params)):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    values = [untrained_like(trained, s).values(task, states, [1.0]) for s in (0, 1)]
+    values = [arm.values(task, states, [1.0]) for arm in arms]
     assert not np.allclose(values[0], values[1])
 
 
