@@ -15,12 +15,16 @@ from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
 from rllock.core.shapes import read_puz_labels, write_puz
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
+from rllock.files import render
 from rllock.files.assembly import write_assembly
 from rllock.files.render import (
     disassembly_steps,
     draw_png,
+    exploded_label_points,
+    exploded_offsets,
     label_point,
     piece_colors,
+    pieces_of,
     touching_pieces,
     view_direction,
     write_gif,
@@ -125,6 +129,55 @@ def test_a_piece_the_camera_cannot_see_is_labelled_at_its_centre():
     at = label_point(alone, alone, view, [(alone, np.zeros(3))])
     nearest = max((1.5 + 0.5 * np.asarray(d)) @ view for d in DIRECTIONS)
     assert _seen(at, alone, view) and np.isclose(at @ view, nearest)
+
+
+def _seen_in(point: np.ndarray, scene: list[tuple[np.ndarray, np.ndarray]], view: np.ndarray) -> bool:
+    """Reference: the ray from `point` (20 voxels long, in steps of 0.005) meets no voxel of the grids
+    drawn at their offsets."""
+    samples = point + np.arange(0.005, 20, 0.005)[:, None] * view
+    for grid, off in scene:
+        cells = np.floor(samples - off).astype(int)
+        inside = np.all((cells >= 0) & (cells < grid.shape), axis=1)
+        if grid[tuple(cells[inside].T)].any():
+            return False
+    return True
+
+
+def test_the_ray_test_is_exact_against_a_fine_march():
+    # Grids at offsets that are not whole voxels, and points all around them: the cut ray against a march
+    # 50 times finer than the steps the test once took (which missed corners).
+    rng = np.random.default_rng(0)
+    view = view_direction(24, -58)
+    for _ in range(20):
+        scene = [(rng.random((3, 4, 2)) < 0.5, rng.uniform(-2, 2, 3)) for _ in range(3)]
+        points = rng.uniform(-3, 5, (30, 3))
+        fine = [_seen_in(p, scene, view) for p in points]
+        np.testing.assert_array_equal(render._unhidden(points, view, scene), fine)
+
+
+def test_exploded_labels_sit_on_their_own_piece_where_the_camera_sees_it():
+    # The demo's cube4 K=6 assembly (z, y, x): rounded to whole voxels, the exploded view put label 6 on
+    # a face that piece 5, drawn in front of it, hides; the label showed on piece 5.
+    labels = np.array(
+        [
+            [[6, 6, 5, 5], [6, 2, 5, 5], [6, 5, 5, 6], [6, 6, 6, 6]],
+            [[6, 1, 1, 1], [2, 2, 1, 6], [3, 3, 5, 6], [3, 6, 4, 6]],
+            [[1, 1, 1, 1], [2, 1, 5, 4], [2, 3, 5, 4], [3, 3, 4, 4]],
+            [[2, 2, 1, 4], [2, 2, 4, 4], [2, 3, 5, 4], [3, 3, 3, 4]],
+        ]
+    ).transpose(2, 1, 0)
+    view = view_direction(24, -58)
+    offsets = exploded_offsets(pieces_of(labels), labels.shape)
+    points = exploded_label_points(labels, offsets, view, 6)
+    for i, (at, off) in enumerate(zip(points, offsets)):
+        local = at - off
+        # On a face of the piece: a whole coordinate on one axis with the piece on one side only.
+        axis = int(np.argmin(np.abs(local - np.round(local))))
+        inner, outer = np.floor(local).astype(int), np.floor(local).astype(int)
+        inner[axis], outer[axis] = round(local[axis]) - 1, round(local[axis])
+        sides = [labels[tuple(c)] if np.all(c >= 0) and np.all(c < 4) else 0 for c in (inner, outer)]
+        assert (i + 1 in sides) and sides[0] != sides[1], (i + 1, local)
+        assert _seen_in(at, [(labels == j + 1, o) for j, o in enumerate(offsets)], view), i + 1
 
 
 def test_a_picture_writer_puts_a_picture_next_to_the_assembly(tmp_path, labels):

@@ -38,9 +38,8 @@ _FRAMES_PER_MOVE = 3
 # The PNG's camera, in degrees.
 _ELEV, _AZIM = 24.0, -58.0
 # A label goes on the nearest of a piece's faces that face the camera and are not hidden; the ray test
-# that tells hidden ones looks at this many candidates, nearest first, and marches in steps this long.
+# that tells hidden ones looks at this many candidates, nearest first.
 _LABEL_CANDIDATES = 64
-_RAY_STEP = 0.25
 
 
 # Up to this many pieces each gets a colour of its own; more share DISTINCT colours so that no two touching
@@ -215,9 +214,7 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     pieces = pieces_of(labels)
     k = len(pieces)
     colors = piece_colors(labels)
-    center = np.asarray(labels.shape) / 2
-    # Pieces move out from the centre by their own distance from it: far enough to show every piece.
-    spread = np.stack([1.5 * (p.center - center) for p in pieces])
+    spread = exploded_offsets(pieces, labels.shape)
     shown = np.ones(k, dtype=bool)
     fig = Figure(figsize=(10, 5), dpi=90)
     FigureCanvasAgg(fig)
@@ -235,16 +232,8 @@ def draw_png(labels: np.ndarray, path: str | Path, removal: str | None = None) -
     title = "exploded (numbers = removal order)" if numbered else "exploded"
     ax = _axes(fig, (1, 2, 2), ex_lo, ex_hi, title)
     ax.add_collection3d(_collection(pieces, spread, shown, colors))
-    exploded, base = _exploded_grid(labels, spread)
-    for i, off in enumerate(spread):
-        if i == 0 or numbered:
-            mask = labels == i + 1
-            # The piece itself, and the others where they are drawn (to the nearest voxel), in its own
-            # coordinates.
-            scene = [(mask, np.zeros(3)), ((exploded != 0) & (exploded != i + 1), base - off)]
-            _label(
-                ax, label_point(mask, mask, view, scene) + off, "1 key" if i == 0 else str(i + 1), key=i == 0
-            )
+    for i, at in enumerate(exploded_label_points(labels, spread, view, k if numbered else 1)):
+        _label(ax, at, "1 key" if i == 0 else str(i + 1), key=i == 0)
     mode = f", {removal} removal" if removal else ""
     fig.suptitle(order_caption(k) + mode, fontsize=11, y=0.98)
     fig.savefig(path)
@@ -280,30 +269,63 @@ def label_point(
     return near[int(np.argmax(seen))] if seen.any() else near[0]
 
 
-def _exploded_grid(labels: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The exploded view as one label grid, each piece moved by its offset rounded to whole voxels,
-    and where the grid's voxel (0, 0, 0) is drawn."""
+def exploded_offsets(pieces: list[Piece], shape: tuple[int, ...]) -> np.ndarray:
+    """Each piece's offset in the exploded view (K, 3): out from the centre by its own distance from it,
+    far enough to show every piece."""
+    return np.stack([1.5 * (p.center - np.asarray(shape) / 2) for p in pieces])
+
+
+def exploded_label_points(labels: np.ndarray, spread: np.ndarray, view: np.ndarray, count: int) -> np.ndarray:
+    """Where the labels of pieces 1..count go in the exploded view, each piece drawn at its offset in
+    `spread`: on a face of its own that the camera sees past the other pieces, tested where they are drawn
+    (their offsets are not whole voxels: rounded, a piece in front could be missed)."""
     voxels = np.argwhere(labels > 0)
     ids = labels[tuple(voxels.T)]
-    moved = voxels + np.rint(spread[ids - 1]).astype(int)
-    low = moved.min(axis=0)
-    grid = np.zeros(moved.max(axis=0) - low + 1, dtype=labels.dtype)
-    grid[tuple((moved - low).T)] = ids
-    return grid, low.astype(float)
+    order = np.argsort(ids, kind="stable")
+    starts = np.searchsorted(ids[order], np.arange(1, len(spread) + 1))
+    lows = np.minimum.reduceat(voxels[order], starts)
+    highs = np.maximum.reduceat(voxels[order], starts) + 1
+    boxes = [
+        (labels[tuple(slice(a, b) for a, b in zip(low, high))] == i + 1, low + spread[i])
+        for i, (low, high) in enumerate(zip(lows, highs))
+    ]
+    points = []
+    for i in range(count):
+        mask = labels == i + 1
+        scene = [(mask, np.zeros(3))] + [(box, at - spread[i]) for j, (box, at) in enumerate(boxes) if j != i]
+        points.append(label_point(mask, mask, view, scene) + spread[i])
+    return np.asarray(points).reshape(count, 3)
 
 
 def _unhidden(points: np.ndarray, view: np.ndarray, scene: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Whether each point sees the camera: its ray along `view` (sampled every _RAY_STEP from just off
-    the point) enters no voxel of the grids of `scene`, each drawn at its offset."""
-    reach = max(float(np.linalg.norm(grid.shape) + np.abs(off).sum()) for grid, off in scene) + 1
-    steps = np.arange(_RAY_STEP, reach, _RAY_STEP)
-    samples = points[:, None, :] + steps[None, :, None] * view  # (P, S, 3)
-    hit = np.zeros(samples.shape[:2], dtype=bool)
+    """Whether each point sees the camera: its ray along `view` enters no voxel of the grids of `scene`,
+    each drawn at its offset. Exact: the ray is cut where it crosses each grid's voxel planes, and the cell
+    at the middle of every piece of positive length is looked up (a ray marched in steps slips past the
+    corners of the pieces it grazes)."""
+    hit = np.zeros(len(points), dtype=bool)
+    axes = np.flatnonzero(view)
     for grid, off in scene:
-        cells = np.floor(samples - off).astype(int)
-        inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=2)
-        hit[inside] |= grid[tuple(cells[inside].T)]
-    return np.logical_not(hit.any(axis=1))
+        # Only the rays that pass through the grid's box are cut (most miss the box of another piece).
+        local = points - off
+        near = -local[:, axes] / view[axes]
+        far = (np.asarray(grid.shape)[axes] - local[:, axes]) / view[axes]
+        enter = np.maximum(np.minimum(near, far).max(axis=1), 0.0)
+        through = np.flatnonzero((np.maximum(near, far).min(axis=1) > enter) & ~hit)
+        if not len(through):
+            continue
+        local = local[through]
+        crossings = [np.zeros((len(through), 1))]
+        for axis in axes:
+            planes = np.arange(grid.shape[axis] + 1)
+            crossings.append((planes[None, :] - local[:, axis, None]) / view[axis])
+        t = np.sort(np.clip(np.concatenate(crossings, axis=1), 0.0, None), axis=1)
+        middle = (t[:, 1:] + t[:, :-1]) / 2
+        cells = np.floor(local[:, None, :] + middle[..., None] * view).astype(int)
+        inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=2) & (np.diff(t, axis=1) > 1e-9)
+        blocked = np.zeros(inside.shape, dtype=bool)
+        blocked[inside] = grid[tuple(cells[inside].T)]
+        hit[through] = blocked.any(axis=1)
+    return np.logical_not(hit)
 
 
 def _label(ax: Axes3D, at: np.ndarray, text: str, key: bool) -> None:
