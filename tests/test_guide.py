@@ -763,11 +763,14 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
     config = GuideTrainConfig(guide=CONFIG)
     _save_guide(tmp_path / "run", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(2)), config)
     bench = ["bench", "guide", "--guide", str(tmp_path / "run"), "--seeds", "0,1", "--time-limit", "30"]
-    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--backjump", "2", "--json")
+    code, out, err = run_cli(
+        *bench, "--cells", "cube4:6", "--backjump", "2", "--untrained-seed", "3", "--json"
+    )
     assert code == 0, err
     doc = json.loads(out)
     (row,) = doc["rows"]
     assert doc["time_limit_s"] == 30 and row["cell"] == "cube4:6" and row["voxels"] == 64
+    assert doc["untrained_seed"] == 3  # untrained networks of different seeds differ: the output says which
     # Every arm ran each seed once and solved it (cube4 K=6 takes the solver a fraction of a second).
     for arm in ("solver", "guided", "untrained"):
         assert len(row[arm]) == 2 and all(r["seconds"] is not None for r in row[arm]), row
@@ -778,6 +781,21 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
     assert code == 2 and err.count("\n") == 1 and "--dives must be at least 1" in err, err
     code, out, err = run_cli(*bench, "--cells", "cube4:6", "--untrained-seed", "-1")
     assert code == 2 and err.count("\n") == 1 and "--untrained-seed must be at least 0" in err, err
+
+
+def test_the_guide_table_names_the_untrained_arms_seed():
+    from orchestration.bench.guide import GuideRow, format_guide_table
+    from orchestration.bench.shapes import Cell
+    from rllock.search.curriculum import parse_named_task
+
+    guide = Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(7)), "trained", horizon=9)
+    arms = {"guided": [Cell(2.0, 30.0)], "untrained": [Cell(None, 30.0, placed=5)]}
+    rows = [GuideRow(parse_named_task("cube4:6"), 64, arms)]
+    table = format_guide_table(
+        rows, ["guided", "untrained"], guide, "rllock bench guide", 30.0, untrained_seed=4
+    )
+    assert "| cell | N | guided (s per seed; median) | untrained, seed 4 (s per seed; median) |" in table
+    assert "| cube4:6 | 64 | 2.0; 2.0 | none in 30 (best 5/5); 30.0 | - |" in table
 
 
 def test_untrained_arms_of_other_seeds_are_other_initial_networks():

@@ -401,10 +401,15 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         untrained_seed=args.untrained_seed,
     )
     if args.json:
-        sys.stdout.write(json.dumps({"time_limit_s": args.time_limit, "rows": rows_json(rows)}) + "\n")
+        doc = {
+            "time_limit_s": args.time_limit,
+            "untrained_seed": args.untrained_seed,
+            "rows": rows_json(rows),
+        }
+        sys.stdout.write(json.dumps(doc) + "\n")
     else:
         command = "rllock " + " ".join(sys.argv[1:])
-        sys.stdout.write(format_guide_table(rows, arms, guide, command, args.time_limit))
+        sys.stdout.write(format_guide_table(rows, arms, guide, command, args.time_limit, args.untrained_seed))
     return 0
 
 

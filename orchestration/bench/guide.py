@@ -73,10 +73,16 @@ def median_seconds(cells: list[Cell]) -> float:
     return statistics.median(c.seconds if c.seconds is not None else c.limit for c in cells)
 
 
+def arm_name(arm: str, untrained_seed: int) -> str:
+    """An arm as the table names it: the untrained arm with the seed of its initial weights, since
+    untrained networks of different seeds pick dive states very differently (docs/benchmarks.md)."""
+    return f"untrained, seed {untrained_seed}" if arm == "untrained" else arm
+
+
 def format_guide_table(
-    rows: list[GuideRow], arms: list[str], guide: Guide, command: str, limit: float
+    rows: list[GuideRow], arms: list[str], guide: Guide, command: str, limit: float, untrained_seed: int = 0
 ) -> str:
-    head = " | ".join(f"{arm} (s per seed; median)" for arm in arms)
+    head = " | ".join(f"{arm_name(arm, untrained_seed)} (s per seed; median)" for arm in arms)
     lines = [
         f"Seconds to the first valid assembly, {limit:.0f} s limit, guide {guide.source} (`{command}`):",
         "",
