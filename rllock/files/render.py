@@ -290,10 +290,10 @@ def exploded_label_points(labels: np.ndarray, spread: np.ndarray, view: np.ndarr
         for i, (low, high) in enumerate(zip(lows, highs))
     ]
     points = []
-    for i in range(count):
-        mask = labels == i + 1
-        scene = [(mask, np.zeros(3))] + [(box, at - spread[i]) for j, (box, at) in enumerate(boxes) if j != i]
-        points.append(label_point(mask, mask, view, scene) + spread[i])
+    for box, at in boxes[:count]:
+        # Every piece, itself included, in the coordinates of this piece's box.
+        scene = [(other, other_at - at) for other, other_at in boxes]
+        points.append(label_point(box, box, view, scene) + at)
     return np.asarray(points).reshape(count, 3)
 
 
