@@ -149,7 +149,7 @@ def main() -> None:
     p.add_argument("--dives-from", type=int, default=2, help="rate: the first restart that dives")
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--untrained", action="store_true", help="trials: the initial weights")
-    p.add_argument("--untrained-seed", type=int, default=0, help="trials: the initial weights' seed")
+    p.add_argument("--untrained-seed", type=int, help="trials, with --untrained: its seed (0)")
     p.add_argument("--budget", type=int, default=2000, help="node expansions of each restart (trials)")
     p.add_argument("--seconds", type=float, default=100.0, help="seconds per arm (rate)")
     p.add_argument("--horizon", type=int, default=20, help="states: pieces left at a dive state")
@@ -157,6 +157,9 @@ def main() -> None:
     p.add_argument("--groups", type=int, default=10_000, help="rank: random groups of dive states")
     p.add_argument("--group", type=int, default=8, help="rank: dive states a restart chooses among")
     args = p.parse_args()
+    if args.untrained_seed is not None and not args.untrained:
+        p.error("--untrained-seed draws the untrained network's weights: give it with --untrained")
+    args.untrained_seed = args.untrained_seed or 0
     if args.mode in ("states", "rank"):
         args.out = args.guide
     {"trials": trials, "rate": rate, "states": states, "rank": rank}[args.mode](args)
