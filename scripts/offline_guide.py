@@ -24,9 +24,11 @@ import numpy as np
 
 from learner.guide_learner import GuideBuffer, GuideLearner, judge
 from rllock.config import GuideTrainConfig, from_json
+from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files.orbax_io import write_state
 from rllock.search.guide import channels
+from rllock.search.guide_checkpoint import read_guide_metadata
 
 log = logging.getLogger("offline_guide")
 
@@ -51,7 +53,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="the initial weights and the batches")
     args = p.parse_args()
     runs = args.runs.split(",")
-    doc = json.loads((ckpt.find_step_dir(runs[0]) / "meta" / "metadata").read_text())
+    try:
+        doc = read_guide_metadata(ckpt.find_step_dir(runs[0]))
+    except RLLockError as exc:
+        p.exit(2, f"offline_guide: {exc}\n")
     config = from_json(GuideTrainConfig, doc["config"])
     buffer = pooled(runs, config)
     log.info("%d states from %s", buffer.size, ", ".join(runs))
