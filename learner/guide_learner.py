@@ -19,6 +19,7 @@ their own buffer's).
 from __future__ import annotations
 
 import os
+import zipfile
 from functools import partial
 from pathlib import Path
 
@@ -117,21 +118,54 @@ class GuideBuffer:
         os.replace(tmp, path)
 
     def restore(self, path: str) -> int:
+        snapshot = read_snapshot(path)
+        size = len(snapshot["target"])
+        if size > self.capacity or snapshot["window"].shape[1:] != self.window.shape[1:]:
+            raise RLLockError(
+                f"replay snapshot {path} holds {size} states of window {snapshot['window'].shape[1]}: "
+                f"resume with the --buffer-capacity and --window it was made with"
+            )
+        for name in ("window", "features", "target", "group"):
+            getattr(self, name)[:size] = snapshot[name]
+        self.groups, self.size, self.added = snapshot["groups"], size, snapshot["added"]
+        self.cursor = snapshot["cursor"] % self.capacity
+        return size
+
+
+def read_snapshot(path: str | Path) -> dict:
+    """A replay snapshot (`GuideBuffer.snapshot`): its states' arrays and the ring's counters. A snapshot
+    from before sibling groups gives each state its own group (no pairs among them)."""
+    try:
         with np.load(path) as data:
             size = int(data["size"])
-            if size > self.capacity or data["window"].shape[1:] != self.window.shape[1:]:
-                raise RLLockError(
-                    f"replay snapshot {path} holds {size} states of window {data['window'].shape[1]}: "
-                    f"resume with the --buffer-capacity and --window it was made with"
-                )
-            for name in ("window", "features", "target"):
-                getattr(self, name)[:size] = data[name]
-            # A snapshot from before sibling groups: each state its own group (no pairs among them).
-            self.group[:size] = data["group"] if "group" in data.files else np.arange(size)
-            self.groups = int(data["groups"]) if "groups" in data.files else size
-            self.size, self.added = size, int(data["added"])
-            self.cursor = int(data["cursor"]) % self.capacity
-        return size
+            snapshot = {name: data[name][:size] for name in ("window", "features", "target")}
+            snapshot["group"] = data["group"][:size] if "group" in data.files else np.arange(size)
+            snapshot["groups"] = int(data["groups"]) if "groups" in data.files else size
+            snapshot["added"], snapshot["cursor"] = int(data["added"]), int(data["cursor"])
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise RLLockError(f"replay snapshot {path} is missing or damaged: {exc}") from None
+    if any(len(snapshot[name]) != size for name in ("window", "features", "target", "group")):
+        raise RLLockError(f"replay snapshot {path} is damaged: it holds fewer states than it says ({size})")
+    return snapshot
+
+
+def pool(snapshots: dict[str, dict], window: int, channels: int = CHANNELS) -> GuideBuffer:
+    """One buffer holding every state of several runs' snapshots (`read_snapshot`, by source), each
+    snapshot's sibling groups numbered apart from the others'."""
+    total = sum(len(s["target"]) for s in snapshots.values())
+    if not total:
+        raise RLLockError(f"no states to train on in {', '.join(snapshots)}")
+    buffer = GuideBuffer(total, window, channels)
+    for source, s in snapshots.items():
+        if s["window"].shape[1:] != buffer.window.shape[1:]:
+            raise RLLockError(
+                f"replay snapshot {source} holds states of window {s['window'].shape[1]} with "
+                f"{s['window'].shape[-1]} channels: train on it with the --window and --overview it was "
+                f"made with (here {window} and {channels})"
+            )
+        if len(s["target"]):
+            buffer.add(s["window"], s["features"], s["target"], s["group"] - s["group"].min())
+    return buffer
 
 
 # A node has at most `SearchConfig.children` (8) children, stored one after another: a sibling of a state

@@ -20,6 +20,7 @@ import dataclasses
 import logging
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from actors.guide_actor import GuideActor, SearchReport
 from actors.selfplay import actor_env
 from learner.guide_learner import GuideBuffer, GuideLearner, judge
 from orchestration.pool import Calls, on_driver_node, start_ray
-from rllock.config import GuideTrainConfig, from_json
+from rllock.config import GuideConfig, GuideTrainConfig, from_json
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
@@ -94,7 +95,39 @@ def resume_config(
     )
 
 
+def judge_nodes(
+    params: dict, config: GuideConfig, nodes_of: Callable[[bool], dict], writer: SummaryWriter, step: int
+) -> None:
+    """How well the network orders siblings on nodes it never trained on, against nodes it trained on
+    and against the lookahead share alone (`learner.guide_learner.judge`; `nodes_of(True)` gives held-out
+    nodes, `nodes_of(False)` trained-on ones), in TensorBoard and the log."""
+    found = {}
+    for name, kept_out in (("heldout", True), ("trained", False)):
+        nodes = nodes_of(kept_out)
+        if not len(nodes["target"]):
+            return
+        found[name] = judge(params, config, nodes)
+        for key, value in found[name].items():
+            writer.add_scalar(f"{name}/{key}", value, step)
+    held, trained = found["heldout"], found["trained"]
+    log.info(
+        "siblings ordered rightly on held-out nodes: %.1f%% by the guide, %.1f%% by the search's own "
+        "order, %.1f%% by the lookahead share (%d pairs); on nodes it trains on: %.1f%%",
+        100 * held["siblings"],
+        100 * held["search_order"],
+        100 * held["share"],
+        held["pairs"],
+        100 * trained["siblings"],
+    )
+
+
 def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
+    """Train the guide network (`config.replay_from`: on replay snapshots already made, without
+    searching: `orchestration.guide_offline`)."""
+    if config.replay_from:
+        from orchestration.guide_offline import train_offline  # it builds on this module
+
+        return train_offline(config, resume=resume)
     config.validate()
     if config.cells:
         named_tasks(config.cells)  # a bad cell is one line here, not an actor's traceback
@@ -292,25 +325,12 @@ class _GuideRun:
         return False
 
     def _judge(self) -> None:
-        """How well the network orders siblings on nodes it never trained on, against nodes it trained on
-        and against the lookahead share alone (`learner.guide_learner.judge`), in TensorBoard and the log."""
-        step, found = self.learner.step, {}
-        for name, kept_out in (("heldout", True), ("trained", False)):
-            nodes = ray.get(self.buffer.nodes.remote(kept_out, JUDGED_NODES, step))
-            if not len(nodes["target"]):
-                return
-            found[name] = judge(self.learner.guide, self.config.guide, nodes)
-            for key, value in found[name].items():
-                self.writer.add_scalar(f"{name}/{key}", value, step)
-        held, trained = found["heldout"], found["trained"]
-        log.info(
-            "siblings ordered rightly on held-out nodes: %.1f%% by the guide, %.1f%% by the search's own "
-            "order, %.1f%% by the lookahead share (%d pairs); on nodes it trains on: %.1f%%",
-            100 * held["siblings"],
-            100 * held["search_order"],
-            100 * held["share"],
-            held["pairs"],
-            100 * trained["siblings"],
+        judge_nodes(
+            self.learner.guide,
+            self.config.guide,
+            lambda kept_out: ray.get(self.buffer.nodes.remote(kept_out, JUDGED_NODES, self.learner.step)),
+            self.writer,
+            self.learner.step,
         )
 
     def _checkpoint(self) -> None:

@@ -369,6 +369,12 @@ class GuideTrainConfig:
     cells: str = ""
     """Instead of the random curriculum, only these tasks, as `rllock bench guide --cells` writes them
     (mario:60,desia-bunny:80:path): a guide taught the tasks a user cannot solve."""
+    replay_from: str = ""
+    """Instead of searching, train on replay snapshots already made, comma-separated: train-guide runs
+    (their LOGDIR/replay.npz) or snapshot files. The learner alone, no Ray and no actors, on all their
+    states at once, until --max-learner-steps or --minutes (the search and curriculum flags do nothing):
+    networks trained so on the same states differ as much as whole runs do, at a fraction of the cost
+    (docs/benchmarks.md)."""
     buffer_capacity: int = 200_000
     """States kept; the oldest are overwritten."""
     batch_size: int = 256

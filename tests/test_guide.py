@@ -696,6 +696,108 @@ def test_a_replay_snapshot_keeps_the_sibling_groups_and_an_older_one_pairs_nothi
     assert not old.sample(8, 0)["paired"].any()
 
 
+def _snapshot(path, seed: int, nodes: int) -> GuideBuffer:
+    """A replay snapshot at `path` of `nodes` nodes of 3 children each, their targets a function of the
+    features (so a network can fit them)."""
+    rng = np.random.default_rng(seed)
+    n = 3 * nodes
+    features = rng.random((n, GLOBALS)).astype(np.float32)
+    buffer = GuideBuffer(n, 8)
+    buffer.add(rng.integers(0, 2, size=(n, 8, 8, 8, CHANNELS)).astype(np.int8), features,
+               (0.7 * features[:, 0] + 0.3 * features[:, 1]).astype(np.float32),
+               np.repeat(np.arange(nodes), 3))  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer.snapshot(str(path))
+    return buffer
+
+
+def test_a_guide_trained_on_pooled_snapshots_is_the_learner_on_their_states_and_resumes(tmp_path):
+    """train-guide --replay-from: every state of a run's snapshot and a snapshot file in one buffer,
+    each's siblings apart; the checkpoint is the learner's steps on it, bit for bit, through a resume."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from orchestration.guide_offline import keep_snapshot, load_pool
+    from orchestration.guide_train import train_guide
+
+    a = _snapshot(tmp_path / "run-a" / "replay.npz", 1, 20)
+    made = {"command": f"rllock train-guide --logdir {tmp_path}/run-a", "commit": "abc", "date": "today"}
+    mngr = orbax_io.manager(tmp_path / "run-a" / "checkpoints", keep=1)
+    learner = GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(0))
+    orbax_io.save(mngr, 1, learner.state(), guide_metadata(GuideTrainConfig(guide=CONFIG), 1, {}, [made]))
+    mngr.close()
+    # The snapshot kept apart from its run: compressed, with the run's sessions beside it, portable.
+    kept = keep_snapshot(tmp_path / "run-a", tmp_path / "kept" / "a.npz")
+    assert kept["states"] == 60 and kept["sessions"][0]["command"] == "rllock train-guide --logdir run-a"
+    assert (tmp_path / "kept" / "a.npz").stat().st_size < (tmp_path / "run-a" / "replay.npz").stat().st_size
+    b = _snapshot(tmp_path / "b.npz", 2, 14)
+    out = tmp_path / "offline"
+    sources = f"{tmp_path / 'kept' / 'a.npz'},{tmp_path / 'b.npz'}"
+    config = GuideTrainConfig(guide=CONFIG, logdir=str(out), replay_from=sources, batch_size=16,
+                              max_learner_steps=30, minutes=3, checkpoint_minutes=10)  # fmt: skip
+    pooled, _ = load_pool(config)
+    assert pooled.size == 102
+    np.testing.assert_array_equal(pooled.window[:102], np.concatenate([a.window, b.window]))
+    np.testing.assert_array_equal(pooled.target[:102], np.concatenate([a.target, b.target]))
+    # Nodes keep their children together and no node spans two snapshots.
+    assert pooled.group[:102].tolist() == np.repeat(np.arange(34), 3).tolist()
+    result = train_guide(config)
+    assert result.steps == 30 and not result.interrupted
+    reference = GuideLearner(CONFIG, config.guide_learning_rate, jax.random.PRNGKey(config.seed))
+    for _ in range(30):
+        reference.update(pooled.sample(16, reference.next_seed()))
+    for got, want in zip(jax.tree.leaves(load_guide(out).params), jax.tree.leaves(reference.params)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    doc = read_guide_metadata(out / "checkpoints" / "30")
+    assert [r["states"] for r in doc["replay"]] == [60, 42]
+    assert doc["replay"][0]["made_by"] == kept["sessions"] and doc["replay"][1]["made_by"] == []
+    # The run's own folder names the same states.
+    assert load_pool(replace(config, replay_from=str(tmp_path / "run-a")))[1][0]["made_by"] == [made]
+    assert doc["replay"][1]["sha256"] == hashlib.sha256((tmp_path / "b.npz").read_bytes()).hexdigest()
+    assert doc["counters"]["states"] == 102 and doc["config"]["replay_from"] == config.replay_from
+    events = EventAccumulator(str(out))
+    events.Reload()
+    assert {"losses/value", "losses/siblings", "heldout/siblings", "trained/siblings"} <= set(
+        events.Tags()["scalars"]
+    )
+    # A resume goes on with the optimizer state and the sampling key: the same as 40 steps in one go.
+    result = train_guide(replace(config, max_learner_steps=40), resume=True)
+    assert result.steps == 40
+    for _ in range(10):
+        reference.update(pooled.sample(16, reference.next_seed()))
+    for got, want in zip(jax.tree.leaves(load_guide(out).params), jax.tree.leaves(reference.params)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    assert len(read_guide_metadata(out / "checkpoints" / "40")["sessions"]) == 2
+    with pytest.raises(RLLockError, match="already holds a guide run"):
+        train_guide(config)
+    _snapshot(tmp_path / "b.npz", 3, 14)
+    with pytest.raises(RLLockError, match="not the ones it was trained on"):
+        train_guide(replace(config, max_learner_steps=50), resume=True)
+
+
+def test_train_guide_on_snapshots_refuses_bad_ones_in_one_line(tmp_path):
+    _snapshot(tmp_path / "ok.npz", 1, 4)
+    (tmp_path / "broken.npz").write_bytes(b"PK not a zip")
+    (tmp_path / "run").mkdir()
+    cases = [
+        ([str(tmp_path / "missing.npz")], "no replay snapshot there"),
+        ([str(tmp_path / "run")], "no replay snapshot there"),
+        ([str(tmp_path / "broken.npz")], "is missing or damaged"),
+        ([str(tmp_path / "ok.npz"), "--window", "12"], "made with"),
+    ]
+    for args, message in cases:
+        code, out, err = run_cli(
+            "train-guide",
+            "--replay-from",
+            *args,
+            "--logdir",
+            str(tmp_path / "out"),
+            "--max-learner-steps",
+            "2",
+        )
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1, (args, err)
+        assert not (tmp_path / "out" / "checkpoints").exists()
+
+
 def _save_guide(folder, learner: GuideLearner, config: GuideTrainConfig):
     mngr = orbax_io.manager(folder / "checkpoints", keep=1)
     orbax_io.save(mngr, learner.step, learner.state(), guide_metadata(config, learner.step, {}, []))
@@ -813,7 +915,7 @@ def test_untrained_arms_of_other_seeds_are_other_initial_networks():
     assert not np.allclose(values[0], values[1])
 
 
-def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):
+def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch, capsys):
     from test_shipped_files import machine_paths
 
     from rllock.search.guide_checkpoint import ship_guide
@@ -839,6 +941,13 @@ def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch):
     shipped = load_guide(target)
     for a, b in zip(jax.tree.leaves(shipped.params), jax.tree.leaves(learner.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # `rllock pretrained` lists it below the policies, with what made it.
+    monkeypatch.setattr("rllock.search.guide_checkpoint.GUIDES", tmp_path / "guides")
+    from orchestration.cli.main import main
+
+    assert main(["pretrained"]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| myguide |"))
+    assert "| 9 searches | 3 |" in row and "`rllock train-guide --logdir run`" in row, row
 
 
 @pytest.mark.slow

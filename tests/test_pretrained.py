@@ -71,6 +71,7 @@ def test_a_shipped_name_resolves_where_no_such_path_exists(run, tmp_path, monkey
 
 def test_a_fine_tuned_checkpoint_lists_what_it_started_from(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(ckpt, "SHIPPED", tmp_path / "shipped")
+    monkeypatch.setattr("rllock.search.guide_checkpoint.GUIDES", tmp_path / "shipped" / "guides")
     save_run(tmp_path / "scratch", "box:4x4x2", 4, net=NET, mcts=MCTS, seconds=1200.0)
     save_run(tmp_path / "tuned", "box:4x4x2", 5, net=NET, mcts=MCTS, seconds=300.0, init="general")
     pretrained.ship(tmp_path / "scratch", "box-k4")

@@ -190,8 +190,33 @@ def cmd_pretrained(args: argparse.Namespace) -> int:
             f"| {r['name']} | {r['task']} | {r['canvas']} | {r['simulations']} | {minutes} | "
             f"{pretrained.machine_summary(r['machine'])} | {r['learner_steps']} | {rate(r)} | {commit} |"
         )
+    if guide_rows:
+        lines += ["", "Guide networks (rllock solve --guide NAME; --guide alone: guide):", ""]
+        lines += guide_table(guide_rows)
     sys.stdout.write("\n".join(lines) + "\n")
     return 0
+
+
+def guide_table(rows: list[dict]) -> list[str]:
+    """The shipped guides with what made them: a run's searches, or other runs' snapshots."""
+    from rllock.search import pretrained
+
+    lines = [
+        "| name | window | trained on | learner steps | machine | date | commit | command |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for g in rows:
+        data = (
+            f"{sum(r['states'] for r in g['replay'])} states of {len(g['replay'])} runs' snapshots"
+            if g["replay"]
+            else f"{g['searches']} searches"
+        )
+        lines.append(
+            f"| {g['name']} | {g['window']} | {data} | {g['learner_steps']} | "
+            f"{pretrained.machine_summary(g['machine'])} | {(g['date'] or '-')[:10]} | "
+            f"{(g['commit'] or '-')[:12]} | `{g['command']}` |"
+        )
+    return lines
 
 
 def cmd_train_guide(args: argparse.Namespace) -> int:
@@ -213,10 +238,14 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
     if result.interrupted:
         sys.stdout.write(f"train-guide: stopped; resume with: rllock train-guide --resume {result.logdir}\n")
         return 128 + int(result.stop_signal or signal.SIGINT)
+    done = (
+        f"on the states of {config.replay_from}"
+        if config.replay_from
+        else f"{result.searches} searches ({result.solved} solved)"
+    )
     sys.stdout.write(
-        f"train-guide: {result.steps} learner steps, {result.searches} searches ({result.solved} solved) in "
-        f"{result.seconds:.0f} s; checkpoints: {result.logdir}/checkpoints; use: rllock solve ... --guide "
-        f"{result.logdir}\n"
+        f"train-guide: {result.steps} learner steps, {done} in {result.seconds:.0f} s; checkpoints: "
+        f"{result.logdir}/checkpoints; use: rllock solve ... --guide {result.logdir}\n"
     )
     return 0
 

@@ -98,10 +98,12 @@ def describe_guide(name: str) -> dict:
         "training_minutes": round(counters.get("seconds", 0.0) / 60, 1),
         "searches": counters.get("searches", 0),
         "learner_steps": doc["step"],
-        "commit": sessions[0]["commit"] if sessions else None,
-        "machine": sessions[0]["machine"] if sessions else None,
-        "date": sessions[0]["date"] if sessions else None,
+        "command": sessions[0].get("command") if sessions else None,
+        "commit": sessions[0].get("commit") if sessions else None,
+        "machine": sessions[0].get("machine") if sessions else None,
+        "date": sessions[0].get("date") if sessions else None,
         "sessions": sessions,
+        "replay": doc.get("replay", []),  # the snapshots it learned from, where it learned offline
     }
 
 
@@ -114,6 +116,10 @@ def ship_guide(source: Path, name: str, into: Path | None = None) -> Path:
     doc = read_guide_metadata(step_dir)
     guide = load_guide(step_dir)
     doc["config"]["logdir"] = portable(doc["config"]["logdir"])
+    if doc["config"].get("replay_from"):
+        doc["config"]["replay_from"] = ",".join(map(portable, doc["config"]["replay_from"].split(",")))
+    if "replay" in doc:  # a guide trained on snapshots (train-guide --replay-from)
+        doc["replay"] = [{**r, "source": portable(r["source"])} for r in doc["replay"]]
     doc["sessions"] = [
         {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
         for s in doc.get("sessions", [])
