@@ -831,6 +831,27 @@ def test_a_saved_guide_loads_with_its_weights_and_bad_ones_are_one_line_errors(t
         load_guide(damaged)
 
 
+def test_guides_named_together_are_one_guide_of_their_mean_value(tmp_path):
+    for seed in (1, 2):
+        _save_guide(tmp_path / f"s{seed}", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(seed)),
+                    GuideTrainConfig(guide=CONFIG))  # fmt: skip
+    one, two = load_guide(tmp_path / "s1"), load_guide(tmp_path / "s2")
+    both = load_guide(f"{tmp_path / 's1'},{tmp_path / 's2'}")
+    task = make_task("cube4", 7)
+    root = initial_state(task)
+    children = [apply_chunk(root, c) for c in sample_accepted(task, root, seed=0, num_samples=64)[:5]]
+    assert len(children) == 5
+    shares = [1.0, 0.5, 0.25, 0.8, 0.6]
+    mean = (one.values(task, children, shares) + two.values(task, children, shares)) / 2
+    np.testing.assert_allclose(both.values(task, children, shares), mean, rtol=1e-6)
+    assert not np.allclose(one.values(task, children, shares), two.values(task, children, shares))
+    _save_guide(tmp_path / "wide", GuideLearner(replace(CONFIG, guide_hidden=8), 1e-3, jax.random.PRNGKey(0)),
+                GuideTrainConfig(guide=replace(CONFIG, guide_hidden=8)))  # fmt: skip
+    with pytest.raises(RLLockError, match="not one network") as error:
+        load_guide(f"{tmp_path / 's1'},{tmp_path / 'wide'}")
+    assert "\n" not in str(error.value)
+
+
 @pytest.mark.parametrize("guide", ["cube4-k7", "nowhere/run"])
 def test_solve_with_a_bad_guide_is_one_line_and_exit_2_before_any_search(tmp_path, guide):
     code, _, err = run_cli(

@@ -1,5 +1,5 @@
 """Shipped files name no absolute path of the machine that made them: the packaged checkpoints, the
-docs and the README, and what `rllock pretrained --ship` writes."""
+docs, the README, the kept replay snapshots' records, and what `rllock pretrained --ship` writes."""
 
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ def shipped_files() -> list[Path]:
     files = [ROOT / "README.md"]
     for folder in (ROOT / "rllock" / "checkpoints", ROOT / "docs"):
         files += sorted(p for p in folder.rglob("*") if p.is_file())
-    return files
+    # Kept replay snapshots' records (`scripts/keep_replay.py`); the arrays beside them are numbers.
+    return files + sorted((ROOT / "data").rglob("*.json")) + sorted((ROOT / "data").rglob("*.md"))
 
 
 def machine_paths(data: bytes) -> list[str]:
