@@ -208,7 +208,7 @@ class _OfflineRun:
             if time.monotonic() - last_checkpoint >= 60 * config.checkpoint_minutes:
                 self._checkpoint()
                 saved, last_checkpoint = learner.step, time.monotonic()
-            elif learner.step % JUDGE_EVERY == 0:
+            elif learner.step % JUDGE_EVERY == 0 and learner.step != limit:  # the last: its checkpoint's
                 self._judge()
         if learner.step != saved:
             self._checkpoint()
