@@ -10,6 +10,7 @@ import re
 import shutil
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -831,27 +832,6 @@ def test_a_saved_guide_loads_with_its_weights_and_bad_ones_are_one_line_errors(t
         load_guide(damaged)
 
 
-def test_guides_named_together_are_one_guide_of_their_mean_value(tmp_path):
-    for seed in (1, 2):
-        _save_guide(tmp_path / f"s{seed}", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(seed)),
-                    GuideTrainConfig(guide=CONFIG))  # fmt: skip
-    one, two = load_guide(tmp_path / "s1"), load_guide(tmp_path / "s2")
-    both = load_guide(f"{tmp_path / 's1'},{tmp_path / 's2'}")
-    task = make_task("cube4", 7)
-    root = initial_state(task)
-    children = [apply_chunk(root, c) for c in sample_accepted(task, root, seed=0, num_samples=64)[:5]]
-    assert len(children) == 5
-    shares = [1.0, 0.5, 0.25, 0.8, 0.6]
-    mean = (one.values(task, children, shares) + two.values(task, children, shares)) / 2
-    np.testing.assert_allclose(both.values(task, children, shares), mean, rtol=1e-6)
-    assert not np.allclose(one.values(task, children, shares), two.values(task, children, shares))
-    _save_guide(tmp_path / "wide", GuideLearner(replace(CONFIG, guide_hidden=8), 1e-3, jax.random.PRNGKey(0)),
-                GuideTrainConfig(guide=replace(CONFIG, guide_hidden=8)))  # fmt: skip
-    with pytest.raises(RLLockError, match="not one network") as error:
-        load_guide(f"{tmp_path / 's1'},{tmp_path / 'wide'}")
-    assert "\n" not in str(error.value)
-
-
 @pytest.mark.parametrize("guide", ["cube4-k7", "nowhere/run"])
 def test_solve_with_a_bad_guide_is_one_line_and_exit_2_before_any_search(tmp_path, guide):
     code, _, err = run_cli(
@@ -934,6 +914,24 @@ def test_untrained_arms_of_other_seeds_are_other_initial_networks():
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     values = [arm.values(task, states, [1.0]) for arm in arms]
     assert not np.allclose(values[0], values[1])
+
+
+def test_every_shipped_guide_loads_and_names_what_made_it_down_to_its_kept_data():
+    """`--guide` alone loads the shipped guide; a guide trained on kept snapshots names them by hash,
+    and they are the files in data/replay (so its command reproduces it from the repository)."""
+    from orchestration.guide_offline import sha256
+    from rllock.search.guide_checkpoint import SHIPPED_GUIDE, describe_guide, shipped_guides
+
+    root = Path(__file__).resolve().parents[1]
+    for name in shipped_guides():
+        guide, row = load_guide(name), describe_guide(name)
+        assert guide.config.window == row["window"] and row["learner_steps"] > 0, name
+        assert row["command"].startswith("rllock train-guide") and row["commit"] and row["date"], name
+        for kept in row["replay"]:
+            assert sha256(root / kept["source"]) == kept["sha256"], kept["source"]
+            assert kept["made_by"] and kept["made_by"][0]["command"].startswith("rllock train-guide")
+    if shipped_guides():
+        assert SHIPPED_GUIDE in shipped_guides()
 
 
 def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch, capsys):

@@ -203,9 +203,6 @@ class Guide:
     source: str  # a checkpoint's path or name, or "untrained (seed N)"
     horizon: int = 20
     """It judges children with at most this many pieces left: where it was trained (`--max-left`)."""
-    members: tuple[dict, ...] = ()
-    """More weights of the same network: the value is the mean of all (an ensemble: networks trained on
-    the same states from other seeds differ as much as whole runs do, docs/benchmarks.md)."""
 
     def values(self, task: Task, states: list[State], shares: list[float]) -> np.ndarray:
         """Values of `states` with their lookahead shares (`solver.Child`), in one network call padded
@@ -218,10 +215,7 @@ class Guide:
         window = np.zeros((rows, *e.window.shape[1:]), np.int8)
         features = np.zeros((rows, GLOBALS), np.float32)
         window[: len(states)], features[: len(states)] = e.window, e.features
-        values = sum(
-            guide_values(p, window, features, config=self.config) for p in (self.params, *self.members)
-        )
-        return np.asarray(values)[: len(states)] / (1 + len(self.members))
+        return np.asarray(guide_values(self.params, window, features, config=self.config))[: len(states)]
 
 
 def untrained_like(guide: Guide, seed: int = 0) -> Guide:

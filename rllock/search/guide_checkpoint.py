@@ -61,26 +61,7 @@ def read_guide_metadata(step_dir: Path) -> dict:
 
 def load_guide(source: str | Path = SHIPPED_GUIDE) -> Guide:
     """The guide network in `source`: a `rllock train-guide` run's folder (its latest checkpoint), a step
-    directory, or a shipped name (`guide`); several of them, comma-separated, are one guide whose value
-    is the mean of theirs (an ensemble of networks of one architecture and horizon)."""
-    if "," in str(source):
-        return _ensemble([_load_one(s) for s in str(source).split(",")])
-    return _load_one(source)
-
-
-def _ensemble(guides: list[Guide]) -> Guide:
-    first = guides[0]
-    for other in guides[1:]:
-        if (other.config, other.horizon) != (first.config, first.horizon):
-            raise RLLockError(
-                f"--guide {first.source} and {other.source} are not one network: an ensemble needs one "
-                "window, architecture and horizon"
-            )
-    members = tuple(g.params for g in guides[1:])
-    return Guide(first.config, first.params, ",".join(g.source for g in guides), first.horizon, members)
-
-
-def _load_one(source: str | Path) -> Guide:
+    directory, or a shipped name (`guide`)."""
     policy = not Path(source).exists() and str(source) in ckpt.shipped_names()
     step_dir = ckpt.find_step_dir(source, shipped=ckpt.SHIPPED if policy else GUIDES)
     doc = read_guide_metadata(step_dir)  # a shipped policy's name: the error says what it is
