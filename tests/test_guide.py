@@ -930,8 +930,7 @@ def test_every_shipped_guide_loads_and_names_what_made_it_down_to_its_kept_data(
         for kept in row["replay"]:
             assert sha256(root / kept["source"]) == kept["sha256"], kept["source"]
             assert kept["made_by"] and kept["made_by"][0]["command"].startswith("rllock train-guide")
-    if shipped_guides():
-        assert SHIPPED_GUIDE in shipped_guides()
+    assert SHIPPED_GUIDE in shipped_guides()
 
 
 def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch, capsys):

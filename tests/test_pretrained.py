@@ -17,6 +17,7 @@ from rllock.core.env import make_task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.search import pretrained
+from rllock.search.guide_checkpoint import shipped_guides
 from rllock.search.inference import (
     SuccessRate,
     load_policy,
@@ -100,7 +101,9 @@ def test_every_shipped_checkpoint_loads_for_the_task_its_name_says():
         assert row["commit"] and row["training_minutes"] > 0 and row["learner_steps"] > 0, name
     code, out, err = run_cli("pretrained", "--json")
     assert code == 0, err
-    assert [r["name"] for r in json.loads(out)] == names
+    listed = json.loads(out)
+    assert [r["name"] for r in listed if r.get("kind") != "guide"] == names
+    assert [r["name"] for r in listed if r.get("kind") == "guide"] == shipped_guides()
 
 
 def test_bench_paper_runs_the_three_arms_beside_the_papers_figures(tmp_path, monkeypatch):

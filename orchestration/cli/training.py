@@ -207,7 +207,7 @@ def guide_table(rows: list[dict]) -> list[str]:
     ]
     for g in rows:
         data = (
-            f"{sum(r['states'] for r in g['replay'])} states of {len(g['replay'])} runs' snapshots"
+            f"{sum(r['states'] for r in g['replay']):,} states kept from {len(g['replay'])} run(s)"
             if g["replay"]
             else f"{g['searches']} searches"
         )
