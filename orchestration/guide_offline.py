@@ -20,12 +20,11 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import jax
 import numpy as np
 from tensorboardX import SummaryWriter
 
-from learner.guide_learner import GuideBuffer, GuideLearner, pool, read_snapshot
-from orchestration.guide_train import GuideCounters, GuideResult, judge_nodes
+from learner.guide_learner import GuideBuffer, pool, read_snapshot
+from orchestration.guide_train import GuideCounters, GuideResult, judge_nodes, new_learner, restore_newest
 from rllock.config import GuideTrainConfig
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
@@ -152,13 +151,7 @@ class _OfflineRun:
     def __init__(self, config: GuideTrainConfig, began: float, resume: bool):
         self.config, self.began, self.logdir = config, began, Path(config.logdir)
         self.buffer, self.replay = load_pool(config)
-        self.learner = GuideLearner(
-            config.guide,
-            config.guide_learning_rate,
-            jax.random.PRNGKey(config.seed),
-            config.rank_weight,
-            config.weight_average,
-        )
+        self.learner = new_learner(config)
         self.counters, self.sessions = GuideCounters(states=self.buffer.size), []
         if resume:
             self._restore()
@@ -170,12 +163,7 @@ class _OfflineRun:
         self.stop_signal: int | None = None
 
     def _restore(self) -> None:
-        def restore(step_dir: Path) -> dict:
-            doc = read_guide_metadata(step_dir)
-            self.learner.load_state(orbax_io.restore_like(step_dir, self.learner.state()))
-            return doc
-
-        doc = ckpt.newest_readable(self.logdir, restore)
+        doc = restore_newest(self.logdir, self.learner)
         if [r["sha256"] for r in doc.get("replay", [])] != [r["sha256"] for r in self.replay]:
             raise RLLockError(
                 f"cannot resume {self.logdir}: its replay snapshots are not the ones it was trained on"

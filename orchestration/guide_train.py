@@ -121,6 +121,28 @@ def judge_nodes(
     )
 
 
+def new_learner(config: GuideTrainConfig) -> GuideLearner:
+    """The run's learner at its initial weights, from the run's seed."""
+    return GuideLearner(
+        config.guide,
+        config.guide_learning_rate,
+        jax.random.PRNGKey(config.seed),
+        config.rank_weight,
+        config.weight_average,
+    )
+
+
+def restore_newest(logdir: Path, learner: GuideLearner) -> dict:
+    """Load the newest readable checkpoint of the guide run in `logdir` into `learner`; its metadata."""
+
+    def restore(step_dir: Path) -> dict:
+        doc = read_guide_metadata(step_dir)
+        learner.load_state(orbax_io.restore_like(step_dir, learner.state()))
+        return doc
+
+    return ckpt.newest_readable(logdir, restore)
+
+
 def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
     """Train the guide network (`config.replay_from`: on replay snapshots already made, without
     searching: `orchestration.guide_offline`)."""
@@ -164,13 +186,7 @@ class _GuideRun:
     def __init__(self, config: GuideTrainConfig, began: float, resume: bool):
         self.config, self.began = config, began
         self.logdir = Path(config.logdir)
-        self.learner = GuideLearner(
-            config.guide,
-            config.guide_learning_rate,
-            jax.random.PRNGKey(config.seed),
-            config.rank_weight,
-            config.weight_average,
-        )
+        self.learner = new_learner(config)
         self.counters, self.sessions = GuideCounters(), []
         if resume:
             self._restore()
@@ -188,12 +204,7 @@ class _GuideRun:
         self.saved: tuple[int, int] | None = None  # (learner step, searches) of the last checkpoint
 
     def _restore(self) -> None:
-        def restore(step_dir: Path) -> dict:
-            doc = read_guide_metadata(step_dir)
-            self.learner.load_state(orbax_io.restore_like(step_dir, self.learner.state()))
-            return doc
-
-        doc = ckpt.newest_readable(self.logdir, restore)
+        doc = restore_newest(self.logdir, self.learner)
         self.counters = GuideCounters(**doc.get("counters", {}))
         self.sessions = list(doc.get("sessions", []))
         log.info(
