@@ -110,12 +110,8 @@ class GuideBuffer:
 
     def snapshot(self, path: str) -> None:
         """Write the buffer to `path` atomically (a temporary file renamed over it)."""
-        tmp = Path(path).with_suffix(".tmp.npz")
-        arrays = {
-            name: getattr(self, name)[: self.size] for name in ("window", "features", "target", "group")
-        }
-        np.savez(tmp, size=self.size, cursor=self.cursor, added=self.added, groups=self.groups, **arrays)
-        os.replace(tmp, path)
+        state = {name: getattr(self, name)[: self.size] for name in ARRAYS}
+        write_snapshot(path, state | {"cursor": self.cursor, "added": self.added, "groups": self.groups})
 
     def restore(self, path: str) -> int:
         snapshot = read_snapshot(path)
@@ -125,11 +121,24 @@ class GuideBuffer:
                 f"replay snapshot {path} holds {size} states of window {snapshot['window'].shape[1]}: "
                 f"resume with the --buffer-capacity and --window it was made with"
             )
-        for name in ("window", "features", "target", "group"):
+        for name in ARRAYS:
             getattr(self, name)[:size] = snapshot[name]
         self.groups, self.size, self.added = snapshot["groups"], size, snapshot["added"]
         self.cursor = snapshot["cursor"] % self.capacity
         return size
+
+
+ARRAYS = ("window", "features", "target", "group")  # a snapshot's per-state arrays
+
+
+def write_snapshot(path: str | Path, snapshot: dict, compressed: bool = False) -> None:
+    """Write a snapshot (`read_snapshot`'s form: the arrays and "cursor", "added", "groups") to `path`
+    atomically (a temporary file renamed over it); `compressed` for one kept in the repository."""
+    tmp = Path(path).with_suffix(".tmp.npz")
+    save = np.savez_compressed if compressed else np.savez
+    counts = {name: snapshot[name] for name in ("cursor", "added", "groups")}
+    save(tmp, size=len(snapshot["target"]), **counts, **{name: snapshot[name] for name in ARRAYS})
+    os.replace(tmp, path)
 
 
 def read_snapshot(path: str | Path) -> dict:
@@ -144,7 +153,7 @@ def read_snapshot(path: str | Path) -> dict:
             snapshot["added"], snapshot["cursor"] = int(data["added"]), int(data["cursor"])
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise RLLockError(f"replay snapshot {path} is missing or damaged: {exc}") from None
-    if any(len(snapshot[name]) != size for name in ("window", "features", "target", "group")):
+    if any(len(snapshot[name]) != size for name in ARRAYS):
         raise RLLockError(f"replay snapshot {path} is damaged: it holds fewer states than it says ({size})")
     return snapshot
 

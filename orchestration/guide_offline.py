@@ -14,22 +14,20 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import signal
 import time
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 from tensorboardX import SummaryWriter
 
-from learner.guide_learner import GuideBuffer, pool, read_snapshot
+from learner.guide_learner import GuideBuffer, pool, read_snapshot, write_snapshot
 from orchestration.guide_train import GuideCounters, GuideResult, judge_nodes, new_learner, restore_newest
 from rllock.config import GuideTrainConfig
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
-from rllock.files.provenance import portable, portable_command, provenance
+from rllock.files.provenance import portable, portable_sessions, provenance
 from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
 
@@ -102,31 +100,21 @@ def keep_snapshot(run: Path, out: Path) -> dict:
     snapshot = read_snapshot(run / "replay.npz")
     size = len(snapshot["target"])
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp.npz")
-    arrays = {name: snapshot[name] for name in ("window", "features", "target", "group")}
-    counts = {name: snapshot[name] for name in ("added", "cursor", "groups")}
-    np.savez_compressed(tmp, size=size, **counts, **arrays)
-    os.replace(tmp, out)
+    write_snapshot(out, snapshot, compressed=True)
     record = {
         "run": portable(run),
         "states": size,
         "sha256": sha256(out),
         "config": doc["config"] | {"logdir": portable(doc["config"]["logdir"])},
         "counters": doc.get("counters", {}),
-        "sessions": [
-            {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
-            for s in doc.get("sessions", [])
-        ],
+        "sessions": portable_sessions(doc.get("sessions", [])),
     }
     out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     return record
 
 
 def train_offline(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
-    config.validate()
-    logdir = Path(config.logdir)
-    if not resume and ckpt.saved_steps(logdir / "checkpoints"):
-        raise RLLockError(f"{logdir} already holds a guide run; resume it with --resume {logdir}")
+    """`train_guide` for a config with `replay_from`, which has validated it."""
     run = _OfflineRun(config, time.monotonic(), resume)
     previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -141,7 +129,7 @@ def train_offline(config: GuideTrainConfig, *, resume: bool = False) -> GuideRes
         run.counters.searches,
         run.counters.solved,
         time.monotonic() - run.began,
-        str(logdir),
+        str(run.logdir),
         run.stop_signal is not None,
         run.stop_signal,
     )

@@ -146,16 +146,16 @@ def restore_newest(logdir: Path, learner: GuideLearner) -> dict:
 def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
     """Train the guide network (`config.replay_from`: on replay snapshots already made, without
     searching: `orchestration.guide_offline`)."""
+    config.validate()
+    logdir = Path(config.logdir)
+    if not resume and ckpt.saved_steps(logdir / "checkpoints"):
+        raise RLLockError(f"{logdir} already holds a guide run; resume it with --resume {logdir}")
     if config.replay_from:
         from orchestration.guide_offline import train_offline  # it builds on this module
 
         return train_offline(config, resume=resume)
-    config.validate()
     if config.cells:
         named_tasks(config.cells)  # a bad cell is one line here, not an actor's traceback
-    logdir = Path(config.logdir)
-    if not resume and ckpt.saved_steps(logdir / "checkpoints"):
-        raise RLLockError(f"{logdir} already holds a guide run; resume it with --resume {logdir}")
     began = time.monotonic()
     started = start_ray(config.address)  # before JAX's threads: Ray forks
     try:

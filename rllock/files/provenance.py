@@ -86,6 +86,14 @@ def portable_command(command: str) -> str:
     return _ABSOLUTE_IN_COMMAND.sub(lambda m: portable(m.group()), command)
 
 
+def portable_sessions(sessions) -> list[dict]:
+    """Training sessions (`provenance`) with the absolute paths in their command lines made `portable`."""
+    return [
+        {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
+        for s in sessions
+    ]
+
+
 def provenance() -> dict:
     """What made a checkpoint, for the record: command, commit, machine and date."""
     device = jax.devices()[0]

@@ -21,7 +21,7 @@ from rllock.config import GuideTrainConfig, from_json, to_json
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files.orbax_io import restore_like, write_state
-from rllock.files.provenance import portable, portable_command
+from rllock.files.provenance import portable, portable_sessions
 from rllock.search.guide import Guide, init_guide
 from rllock.search.pretrained import COMMIT_SUCCESS, commit_line
 
@@ -120,10 +120,7 @@ def ship_guide(source: Path, name: str, into: Path | None = None) -> Path:
         doc["config"]["replay_from"] = ",".join(map(portable, doc["config"]["replay_from"].split(",")))
     if "replay" in doc:  # a guide trained on snapshots (train-guide --replay-from)
         doc["replay"] = [{**r, "source": portable(r["source"])} for r in doc["replay"]]
-    doc["sessions"] = [
-        {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
-        for s in doc.get("sessions", [])
-    ]
+    doc["sessions"] = portable_sessions(doc.get("sessions", []))
     doc["shipped"] = {
         "name": name,
         "from": portable(step_dir),

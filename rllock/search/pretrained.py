@@ -19,7 +19,7 @@ from pathlib import Path
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
-from rllock.files.provenance import portable, portable_command
+from rllock.files.provenance import portable, portable_sessions
 from rllock.search.inference import load_network
 
 
@@ -67,10 +67,7 @@ def portable_meta(meta: ckpt.Metadata) -> ckpt.Metadata:
     `logdir` and `init` and those in each session's command line. Nothing else changes."""
     config = meta.config
     init = None if config.init is None else portable(config.init)
-    sessions = tuple(
-        {**s, "command": portable_command(s["command"])} if isinstance(s.get("command"), str) else s
-        for s in meta.sessions
-    )
+    sessions = tuple(portable_sessions(meta.sessions))
     return dataclasses.replace(
         meta,
         config=dataclasses.replace(config, logdir=portable(config.logdir), init=init),
