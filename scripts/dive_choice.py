@@ -71,7 +71,7 @@ def trials(args: argparse.Namespace) -> None:
 def rate(args: argparse.Namespace) -> None:
     task, trained = parse_named_task(args.cell).task(), load_guide(args.guide)
     untrained = untrained_like(trained)
-    config = SearchConfig(dives=args.dives, dives_from=args.dives_from)
+    config = SearchConfig(dives=args.dives, dive_share=args.dive_share)
     for g in (trained, untrained):  # compiled before any arm is timed
         g.values(task, [initial_state(task)], [1.0])
     for arm, guide in (("solver", None), ("guided", trained), ("untrained", untrained)):
@@ -146,7 +146,9 @@ def main() -> None:
     p.add_argument("guides", nargs="*", help="rank: the guides (runs or checkpoints) to compare")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dives", type=int, default=16)
-    p.add_argument("--dives-from", type=int, default=2, help="rate: the first restart that dives")
+    p.add_argument(
+        "--dive-share", type=float, default=0.5, help="rate: the diving restarts' share of the solver's"
+    )
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--untrained", action="store_true", help="trials: the initial weights")
     p.add_argument("--untrained-seed", type=int, help="trials, with --untrained: its seed (0)")

@@ -45,7 +45,9 @@ from rllock.search.solver import (
     _best_dive,
     _dfs,
     _guided,
+    dive_allowance,
     expand,
+    luby,
     rollout_reach,
     search,
     solve,
@@ -344,7 +346,7 @@ def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
 def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_before():
     task = make_task("cube5", 13)
     guide = replace(_untrained(3), horizon=5)
-    config = SearchConfig(dives=4, dives_from=2)
+    config = SearchConfig(dives=4)
     stats, kept = SearchStats(), []
     deadline = time.monotonic() + 60
     rng = np.random.default_rng(7)
@@ -375,6 +377,42 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
         assert verify_labels(found, task.removal).valid
 
 
+def test_the_dives_share_grows_past_its_units_in_proportion_to_the_solvers_expansions():
+    config, unit = SearchConfig(dive_share=0.5, dive_share_grows_after=4), 100
+    allowed = [dive_allowance(config, unit, used) for used in (0, 200, 400, 800, 1600)]
+    assert allowed == [0, 100, 200, 800, 3200]  # half, until 4 units; then half of used x used / 400
+    assert dive_allowance(replace(config, dive_share=0), unit, 10**6) == 0
+
+
+def test_the_solvers_restarts_go_on_beside_the_diving_ones_as_the_solvers():
+    task = make_task("cube4", 9)
+    guide, config = replace(_untrained(), horizon=3), SearchConfig(dive_share=0.5)
+    unit = config.restart_unit(task, task.pieces - 1)
+    theirs = 0
+    for seed in range(6):
+        plain = next(search(task, seed=seed, time_limit=60))
+        stats = SearchStats()
+        guided = next(search(task, seed=seed, time_limit=60, guide=guide, config=config, stats=stats))
+        assert verify_labels(guided.labels, task.removal).valid
+        dived = guided.expansions - plain.expansions
+        if stats.dives == 0:  # solved before the first dive: the solver's search, node for node
+            assert (guided.labels.tobytes(), dived) == (plain.labels.tobytes(), 0)
+            continue
+        # the diving restarts kept within their share, but for the last one's dives and its own budget
+        last = (config.dives + 1) * unit * luby(stats.dives)
+        assert dived <= dive_allowance(config, unit, plain.expansions) + last
+        if np.array_equal(guided.labels, plain.labels):  # the solver's restarts found it, as the solver's did
+            assert dived > 0
+            theirs += 1
+    assert theirs >= 2
+    # No share, no dives: the solver's search, node for node.
+    stats, never = SearchStats(), SearchConfig(dive_share=0)
+    none = next(search(task, seed=0, time_limit=60, guide=guide, config=never, stats=stats))
+    plain = next(search(task, seed=0, time_limit=60))
+    assert (none.expansions, stats.dives) == (plain.expansions, 0)
+    assert np.array_equal(none.labels, plain.labels)
+
+
 class _Counted:
     """A guide that counts the states it is asked to value, call by call."""
 
@@ -398,12 +436,12 @@ def _six_restarts(task, config: SearchConfig) -> tuple[list, SearchStats, list[i
 
 def test_a_guide_that_keeps_the_order_and_dives_values_only_the_dive_states():
     task = make_task("desia-dog", 60)
-    dives = SearchConfig(dives=3, dives_from=3)
+    dives = SearchConfig(dives=3, dive_share=10.0)
     for config, only_dives in ((dives, True), (replace(dives, backjump=2.0), False)):
         found, stats, calls = _six_restarts(task, config)
         assert not found and stats.restarts == 6
-        if only_dives:  # one call per restart from `dives_from` on, of at most its dives
-            assert len(calls) == stats.restarts - config.dives_from + 1 and max(calls) <= 3
+        if only_dives:  # one call per diving restart, of at most its dives
+            assert len(calls) == stats.dives >= 3 and max(calls) <= 3
         else:  # to backjump, every node's children within the horizon are valued
             assert len(calls) > stats.restarts
 

@@ -115,11 +115,11 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         "horizon; 1: from the first, as the solver does (SearchConfig.dives; default: the search's own)",
     )
     p.add_argument(
-        "--dives-from",
-        type=int,
+        "--dive-share",
+        type=float,
         default=None,
-        help="the first restart that dives; those before are the solver's (SearchConfig.dives_from; "
-        "default: the search's own)",
+        help="the diving restarts' expansions at most this share of the solver's restarts' beside them; "
+        "0 never dives (SearchConfig.dive_share; default: the search's own)",
     )
     p.add_argument(
         "--untrained-seed",

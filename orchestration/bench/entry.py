@@ -377,9 +377,10 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         config = replace(config, abandon_below=args.abandon_below)
     if args.demote_by is not None and args.guide_orders:
         raise RLLockError("--demote-by goes with the search's own order, not --guide-orders")
-    for flag, value in (("--dives", args.dives), ("--dives-from", args.dives_from)):
-        if value is not None and value < 1:
-            raise RLLockError(f"{flag} must be at least 1, got {value}")
+    if args.dives is not None and args.dives < 1:
+        raise RLLockError(f"--dives must be at least 1, got {args.dives}")
+    if args.dive_share is not None and not args.dive_share >= 0:
+        raise RLLockError(f"--dive-share must be at least 0, got {args.dive_share}")
     if args.untrained_seed < 0:
         raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
     config = replace(
@@ -388,7 +389,7 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         guide_orders=args.guide_orders,
         demote_by=args.demote_by,
         dives=config.dives if args.dives is None else args.dives,
-        dives_from=config.dives_from if args.dives_from is None else args.dives_from,
+        dive_share=config.dive_share if args.dive_share is None else args.dive_share,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(

@@ -44,6 +44,7 @@ if TYPE_CHECKING:  # the guide brings JAX; the plain search starts without it
 # How often a running search reports its progress, in seconds.
 PROGRESS_EVERY = 0.5
 DIVE_POOL = 64  # dive states kept for later restarts (`SearchConfig.dives`): the best, a bounded memory
+DIVE_STREAM = 1  # the diving restarts' generator is seeded [seed, DIVE_STREAM], apart from the solver's
 
 
 @dataclass(frozen=True)
@@ -131,21 +132,28 @@ class SearchConfig:
     best child's value are tried after the others, each part in the search's own order (the solver's
     judgement stays first; the network only puts off the children it judges clearly worse)."""
     dives: int = 4
-    """With a guide network: each restart from `dives_from` on dives this many times from the root (the
-    restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces before the end), and
-    the restart goes on from the dive state the network values best among these and those earlier
-    restarts left untaken; 1 goes on from the first, as the solver does. With 4, a guide taught mario
-    solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2 of 9;
-    two more trainings of the same command, 2 of 8 and 3 of 17 (docs/benchmarks.md, "mario K=60 on 18
-    seeds", "Which search the actors run").
+    """With a guide network: each restart of the diving sequence (`dive_share`) dives this many times
+    from the root (the restart's own DFS, each dive stopped at the first state `Guide.horizon` pieces
+    before the end), and the restart goes on from the dive state the network values best among these
+    and those earlier restarts left untaken; 1 never dives, as the solver does. With 4, a guide taught
+    mario solved mario K=60 on 12 seeds of 18 in 300 s, the untrained network on 4 and the solver on 2
+    of 9; two more trainings of the same command, 2 of 8 and 3 of 17 (docs/benchmarks.md, "mario K=60
+    on 18 seeds", "Which search the actors run").
     Tasks with at most `Guide.horizon` + 1 pieces have no dive state: there the guided search is the
     solver's."""
-    dives_from: int = 2
-    """The first restart (since the start or the last assembly) that dives; those before are the
-    solver's own. From the 8th restart on (the solver's first seven solve an easy task such as mario
-    K=58 on 8 seeds of 10, and as fast), the guide taught mario solved mario K=60 on 3 seeds of 17 in
-    300 s (also with as many dive states in its pool), against 12 of 18 from the 2nd
-    (docs/benchmarks.md, "`solve --guide` dives", "mario K=60 on 18 seeds")."""
+    dive_share: float = 0.5
+    """With a guide network: the restarts that dive are a second Luby sequence beside the solver's own,
+    on a generator of their own, and one begins only while the expansions of that sequence (with its
+    planned budget) stay within this share of the solver sequence's (`dive_allowance`), both counted
+    since the start or the last assembly. The solver's restarts are the plain solver's, bit for bit, so
+    what the solver finds early the guided search finds too, within 1 + `dive_share` times its
+    expansions (and the last diving restart's); 0 never dives. Before, every restart from the second
+    dived, which cost easy cells up to 14x (the beetle mesh; docs/benchmarks.md, "The guide beside the
+    solver")."""
+    dive_share_grows_after: int = 32
+    """Restart units (`restart_unit`) of the solver sequence's expansions after which the share grows
+    in proportion to them: the longer the plain search fails, the more the dives get (the hard cells the
+    guide is for; 32 units are the solver's first 15 restarts)."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
@@ -204,6 +212,7 @@ class SearchStats:
 
     expansions: int = 0
     restarts: int = 0
+    dives: int = 0  # the restarts that dived (`SearchConfig.dive_share`)
     deepest: State | None = None  # a state with the most pieces placed so far
     reported: float = field(default=0.0, repr=False)  # when progress was last reported
 
@@ -597,25 +606,31 @@ def _search(
     pool: SamplingPool | None,
 ) -> Generator[Found, None, None]:
     stats = SearchStats() if stats is None else stats
-    rng = np.random.default_rng(seed)
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
     kept: list[tuple[float, State]] = []  # dive states not yet taken, with their values (`_best_dive`)
-    last, used, restart = start, 0, 0
+    solver = _Sequence(np.random.default_rng(seed))
+    diver = _Sequence(np.random.default_rng([seed, DIVE_STREAM]))
+    dives = guide is not None and config.dives > 1 and dive_depth(task, guide) >= 1
+    unit = config.restart_unit(task, task.pieces - 1)
+    last = start
     while time.monotonic() < deadline and not stop():
-        restart += 1
+        allowance = dive_allowance(config, unit, solver.used)
+        diving = dives and diver.used + unit * luby(diver.restarts + 1) <= allowance
+        run = diver if diving else solver
+        run.restarts += 1
         stats.restarts += 1
-        budget = config.restart_unit(task, task.pieces - 1) * luby(restart)
-        # The first restarts go on as the solver's: where they succeed (an easy task) dives cost only time.
+        stats.dives += diving
+        budget = unit * luby(run.restarts)
         begin, spent = (
-            _best_dive(task, rng, config, budget, deadline, stats, stop, report, guide, pool, kept)
-            if restart >= config.dives_from
+            _best_dive(task, run.rng, config, budget, deadline, stats, stop, report, guide, pool, kept)
+            if diving
             else (None, 0)
         )
         state, expansions = _dfs(
             task,
-            rng,
+            run.rng,
             config,
             budget,
             deadline,
@@ -628,7 +643,7 @@ def _search(
             begin,
             pool,
         )
-        used += spent + expansions
+        run.used += spent + expansions
         if state is None:
             continue
         stats.reached(state)
@@ -638,8 +653,27 @@ def _search(
             continue
         seen.add(key)
         now = time.monotonic()
-        yield Found(task.topology.to_grid(labels), now - last, used, seed)
-        last, used, restart = now, 0, 0
+        yield Found(task.topology.to_grid(labels), now - last, solver.used + diver.used, seed)
+        last = now
+        for sequence in (solver, diver):
+            sequence.restarts, sequence.used = 0, 0
+
+
+@dataclass
+class _Sequence:
+    """One Luby sequence of restarts (`SearchConfig.dive_share`): its generator, its restarts and the
+    expansions they used since the start or the last assembly."""
+
+    rng: np.random.Generator
+    restarts: int = 0
+    used: int = 0
+
+
+def dive_allowance(config: SearchConfig, unit: int, used: int) -> float:
+    """The expansions the diving restarts may have used beside `used` of the solver's restarts
+    (`SearchConfig.dive_share`): the share of them, and past `dive_share_grows_after` units, a share
+    grown in proportion to them."""
+    return config.dive_share * used * max(1.0, used / (config.dive_share_grows_after * unit))
 
 
 def dive_depth(task: Task, guide: Guide) -> int:
