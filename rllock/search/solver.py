@@ -150,10 +150,13 @@ class SearchConfig:
     expansions (and the last diving restart's); 0 never dives. Before, every restart from the second
     dived, which cost easy cells up to 14x (the beetle mesh; docs/benchmarks.md, "The guide beside the
     solver")."""
-    dive_share_grows_after: int = 32
+    dive_share_grows_after: int = 8
     """Restart units (`restart_unit`) of the solver sequence's expansions after which the share grows
     in proportion to them: the longer the plain search fails, the more the dives get (the hard cells the
-    guide is for; 32 units are the solver's first 15 restarts)."""
+    guide is for). 8 units are the solver's first 6 restarts; it found the easy cells (under 5 s:
+    desia-dog K=60, the beetle mesh at 24 with K=61, mario K=58 on 5 seeds of 6) within 0.5-6.5 units,
+    and fandisk at 24 with K=174 on seed 0 in about 80 (docs/benchmarks.md, "The guide beside the
+    solver")."""
     backjump: float | None = None
     """With a guide network: when a subtree fails, the search backtracks past the step on its path where
     the expected shortfall ((1 - value) x pieces left, in pieces) grew most, if it grew by at least this
