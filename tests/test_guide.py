@@ -45,6 +45,7 @@ from rllock.search.solver import (
     _best_dive,
     _dfs,
     _guided,
+    _Sequence,
     dive_allowance,
     expand,
     luby,
@@ -384,12 +385,19 @@ def test_the_dives_share_grows_past_its_units_in_proportion_to_the_solvers_expan
     assert dive_allowance(replace(config, dive_share=0), unit, 10**6) == 0
 
 
+def test_a_diving_restart_is_planned_with_its_dives_as_they_took_so_far():
+    sequence = _Sequence(np.random.default_rng(0))
+    assert sequence.planned(100, 40) == 100 + 40  # before any dive: one expansion a piece
+    sequence.restarts, sequence.ran, sequence.dived = 2, 2, 3000
+    assert sequence.planned(100, 40) == 100 * luby(3) + 1500
+
+
 def test_the_solvers_restarts_go_on_beside_the_diving_ones_as_the_solvers():
     task = make_task("cube4", 9)
     guide, config = replace(_untrained(), horizon=3), SearchConfig(dive_share=0.5)
     unit = config.restart_unit(task, task.pieces - 1)
     theirs = 0
-    for seed in range(6):
+    for seed in range(10):
         plain = next(search(task, seed=seed, time_limit=60))
         stats = SearchStats()
         guided = next(search(task, seed=seed, time_limit=60, guide=guide, config=config, stats=stats))
