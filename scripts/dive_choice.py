@@ -147,7 +147,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dives", type=int, default=16)
     p.add_argument(
-        "--dive-share", type=float, default=0.5, help="rate: the diving restarts' share of the solver's"
+        "--dive-share",
+        type=float,
+        default=SearchConfig.dive_share,
+        help="rate: the diving restarts' share of the solver's",
     )
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--untrained", action="store_true", help="trials: the initial weights")
