@@ -14,7 +14,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import signal
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -23,6 +22,7 @@ from tensorboardX import SummaryWriter
 
 from learner.guide_learner import GuideBuffer, pool, read_snapshot, write_snapshot
 from orchestration.guide_train import GuideCounters, GuideResult, judge_nodes, new_learner, restore_newest
+from orchestration.stopping import StopRequest, stop_on_signals
 from rllock.config import GuideTrainConfig
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
@@ -116,12 +116,10 @@ def keep_snapshot(run: Path, out: Path) -> dict:
 def train_offline(config: GuideTrainConfig, *, resume: bool = False) -> GuideResult:
     """`train_guide` for a config with `replay_from`, which has validated it."""
     run = _OfflineRun(config, time.monotonic(), resume)
-    previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        run.loop()
+        with stop_on_signals(run.stop):
+            run.loop()
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
         run.writer.close()
         run.manager.close()
     return GuideResult(
@@ -130,8 +128,8 @@ def train_offline(config: GuideTrainConfig, *, resume: bool = False) -> GuideRes
         run.counters.solved,
         time.monotonic() - run.began,
         str(run.logdir),
-        run.stop_signal is not None,
-        run.stop_signal,
+        run.stop.requested,
+        run.stop.signum,
     )
 
 
@@ -148,7 +146,7 @@ class _OfflineRun:
         self.logdir.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(str(self.logdir), purge_step=self.learner.step if resume else None)
         self.manager = orbax_io.manager(self.logdir / "checkpoints", keep=3)
-        self.stop_signal: int | None = None
+        self.stop = StopRequest()
 
     def _restore(self) -> None:
         doc = restore_newest(self.logdir, self.learner)
@@ -159,20 +157,13 @@ class _OfflineRun:
         self.counters, self.sessions = GuideCounters(**doc["counters"]), list(doc.get("sessions", []))
         log.info("resuming %s at learner step %d", self.logdir, self.learner.step)
 
-    def request_stop(self, signum, frame) -> None:
-        del frame
-        if self.stop_signal is not None:
-            raise KeyboardInterrupt
-        self.stop_signal = signum
-        log.warning("stopping: a final checkpoint first (again to abort)")
-
     def loop(self) -> None:
         config, learner = self.config, self.learner
         deadline, limit = self.began + 60 * config.minutes, config.max_learner_steps
         base, start, last_checkpoint = self.counters.seconds, time.monotonic(), time.monotonic()
         saved = learner.step if learner.step else None
         while (
-            self.stop_signal is None
+            not self.stop.requested
             and time.monotonic() < deadline
             and (limit is None or learner.step < limit)
         ):

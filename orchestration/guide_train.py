@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import signal
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -33,6 +32,7 @@ from actors.guide_actor import GuideActor, SearchReport
 from actors.selfplay import actor_env
 from learner.guide_learner import GuideBuffer, GuideLearner, judge
 from orchestration.pool import Calls, on_driver_node, start_ray
+from orchestration.stopping import StopRequest, stop_on_signals
 from rllock.config import GuideConfig, GuideTrainConfig, from_json
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
@@ -160,12 +160,10 @@ def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResul
     started = start_ray(config.address)  # before JAX's threads: Ray forks
     try:
         run = _GuideRun(config, began, resume)
-        previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
-            return run.loop()
+            with stop_on_signals(run.stop):
+                return run.loop()
         finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
             run.writer.close()
     finally:
         if started:
@@ -200,7 +198,7 @@ class _GuideRun:
         if resume and snapshot.exists():
             self.available = ray.get(self.buffer.restore.remote(str(snapshot)))
             log.info("replay buffer restored: %d states", self.available)
-        self.interrupted, self.stop_signal = False, None
+        self.stop = StopRequest()
         self.saved: tuple[int, int] | None = None  # (learner step, searches) of the last checkpoint
 
     def _restore(self) -> None:
@@ -213,13 +211,6 @@ class _GuideRun:
             self.learner.step,
             self.counters.searches,
         )
-
-    def request_stop(self, signum, frame) -> None:
-        del frame
-        if self.interrupted:
-            raise KeyboardInterrupt
-        self.interrupted, self.stop_signal = True, signum
-        log.warning("stopping: a final checkpoint first (again to abort)")
 
     def _actors(self) -> int:
         if self.config.actors:
@@ -252,7 +243,7 @@ class _GuideRun:
             self.logdir,
         )
         base, start, last_checkpoint = c.seconds, time.monotonic(), time.monotonic()
-        while not self.interrupted and time.monotonic() < deadline and not self._reached_max():
+        while not self.stop.requested and time.monotonic() < deadline and not self._reached_max():
             self._turn(deadline)
             c.seconds = base + time.monotonic() - start
             if time.monotonic() - last_checkpoint >= 60 * config.checkpoint_minutes:
@@ -268,8 +259,8 @@ class _GuideRun:
             c.solved,
             elapsed,
             str(self.logdir),
-            self.interrupted,
-            self.stop_signal,
+            self.stop.requested,
+            self.stop.signum,
         )
 
     def _reached_max(self) -> bool:

@@ -22,7 +22,6 @@ buffer. Ctrl-C stops cleanly: a final checkpoint and snapshot, then Ray is shut 
 from __future__ import annotations
 
 import logging
-import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from orchestration.builder import Start, start_buffer, start_learner, start_pool
 from orchestration.pacing import Pacing, Schedule, final_reserve
 from orchestration.pool import NodeWatch, start_ray
 from orchestration.recorder import Counters, Recorder
+from orchestration.stopping import StopRequest, signal_name, stop_on_signals
 from orchestration.validation import Score
 from rllock.config import TrainConfig
 from rllock.errors import RLLockError
@@ -83,29 +83,22 @@ def train(config: TrainConfig, *, resume: bool = False) -> TrainResult:
         learner, start = start_learner(config, workload, init, resume)
         recorder = Recorder(logdir, config, workload.identity(), learner.step, resume, start.sessions)
         run = _Run(config, workload, learner, recorder, start, began)
-        # SIGTERM (`kill`, `ray job stop`, a scheduler) stops a run as Ctrl-C does: a final checkpoint first.
-        previous = {s: signal.signal(s, run.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
-            return run.loop(resume)
+            with stop_on_signals(run.stop):
+                return run.loop(resume)
         finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
             recorder.close()
-            if run.interrupted:
+            if run.stop.requested:
                 log.warning(
                     "stopped by %s at learner step %d; checkpoint saved. Resume with: "
                     "rllock train --resume %s",
-                    _signal_name(run.stop_signal),
+                    signal_name(run.stop.signum),
                     learner.step,
                     logdir,
                 )
     finally:
         if started_ray:
             ray.shutdown()
-
-
-def _signal_name(signum: int | None) -> str:
-    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum or signal.SIGTERM).name
 
 
 @dataclass
@@ -139,28 +132,20 @@ class _Run:
         self.schedule = Schedule.start(began, config)
         self.validator = validation.Validator(validation.Plan.of(config, workload), start.last_score)
         self.progress = _Progress()
-        self.interrupted = False
-        self.stop_signal: int | None = None
-
-    def request_stop(self, signum, frame) -> None:
-        del frame
-        if self.interrupted:  # a second signal: stop at once
-            raise KeyboardInterrupt
-        self.interrupted, self.stop_signal = True, signum
-        log.warning("%s: saving a checkpoint and stopping (again to abort)", _signal_name(signum))
+        self.stop = StopRequest()
 
     def loop(self, resume: bool) -> TrainResult:
         self.buffer: Any = start_buffer(self.config, self.workload, self.recorder, resume)
         self.pool = start_pool(self.config, self.workload, self.buffer, self.counters.episodes)
         try:
             self._selfplay()
-            if self.interrupted:
+            if self.stop.requested:
                 # SIGKILL may follow a SIGTERM within seconds (`ray job stop` waits 3 s unless the head
                 # was started with RAY_JOB_STOP_WAIT_TIME_S): the checkpoint comes before anything else.
                 self._final_checkpoint()
         finally:
             self.pool.shutdown()  # batches under way are dropped: the budget is a hard limit
-        if not self.interrupted:
+        if not self.stop.requested:
             self._validate_if_it_fits(time.monotonic(), final=True)
             self._final_checkpoint()
         return self._result()
@@ -178,7 +163,9 @@ class _Run:
         start, base_seconds = time.monotonic(), c.seconds
         nodes = NodeWatch.start()
         while (
-            not self.interrupted and self._selfplay_time_left() and not self.pacing.reached_max(learner.step)
+            not self.stop.requested
+            and self._selfplay_time_left()
+            and not self.pacing.reached_max(learner.step)
         ):
             weights = self._turn(weights)
             c.seconds = base_seconds + time.monotonic() - start
@@ -224,8 +211,8 @@ class _Run:
             simulations_per_sec=c.simulations / seconds,
             actors=self.pool.layout.actors,
             logdir=str(self.recorder.logdir),
-            interrupted=self.interrupted,
-            stop_signal=self.stop_signal,
+            interrupted=self.stop.requested,
+            stop_signal=self.stop.signum,
             peak_rss_mb=dict(self.progress.memory),
         )
 
@@ -265,7 +252,7 @@ class _Run:
         if schedule.checkpoint_due(now, step):
             self._checkpoint()
             schedule.checkpointed(time.monotonic())
-        if schedule.validation_due(now) and not self.interrupted:
+        if schedule.validation_due(now) and not self.stop.requested:
             self._validate_if_it_fits(now, final=False)
             schedule.validated(time.monotonic())
 

@@ -8,6 +8,9 @@ import hashlib
 import json
 import re
 import shutil
+import signal
+import subprocess
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -819,6 +822,42 @@ def test_a_guide_trained_on_pooled_snapshots_is_the_learner_on_their_states_and_
     _snapshot(tmp_path / "b.npz", 3, 14)
     with pytest.raises(RLLockError, match="not the ones it was trained on"):
         train_guide(replace(config, max_learner_steps=50), resume=True)
+
+
+def test_train_guide_on_snapshots_stops_on_sigterm_with_a_checkpoint_and_resumes_from_it(tmp_path):
+    """SIGTERM (a scheduler, `kill`) stops `train-guide --replay-from` as Ctrl-C does: a checkpoint at
+    the signal past the periodic ones, the resume command, exit 128 + 15; the resume goes on from it."""
+    _snapshot(tmp_path / "a.npz", 1, 40)
+    out = tmp_path / "run"
+    flags = ["--batch-size", "16", "--checkpoint-minutes", "0.05", "--logdir", str(out)]
+    cli = [sys.executable, "-m", "orchestration.cli", "train-guide"]
+    proc = subprocess.Popen([*cli, "--replay-from", str(tmp_path / "a.npz"), "--minutes", "5", *flags],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        end = time.monotonic() + 120
+        while not _guide_steps(out):  # a periodic checkpoint: the loop runs, the handlers are in place
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()[0]
+            time.sleep(0.5)
+        periodic = _guide_steps(out)[-1]
+        time.sleep(1)
+        proc.send_signal(signal.SIGTERM)
+        text, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, text
+    assert "SIGTERM: saving a checkpoint" in text and "Traceback" not in text
+    assert f"rllock train-guide --resume {out}" in text
+    stopped = _guide_steps(out)[-1]
+    assert stopped > periodic
+    code, said, err = run_cli("train-guide", "--resume", str(out), "--max-learner-steps", str(stopped + 5))
+    assert code == 0, err
+    assert f"resuming {out} at learner step {stopped}" in err and _guide_steps(out)[-1] == stopped + 5
+
+
+def _guide_steps(logdir: Path) -> list[int]:
+    folder = logdir / "checkpoints"
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
 
 
 def test_train_guide_on_snapshots_refuses_bad_ones_in_one_line(tmp_path):

@@ -1,0 +1,48 @@
+"""A training run's stop on a signal: Ctrl-C (SIGINT) and SIGTERM (`kill`, `ray job stop`, a scheduler)
+ask the run to stop after a final checkpoint; a second signal aborts at once. One object for the three
+trainers (`train`, `train-guide` with actors and on replay snapshots)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
+
+log = logging.getLogger(__name__)
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class StopRequest:
+    """Whether a stop was asked for and by which signal; a run polls `requested` between its steps."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
+
+    def handle(self, signum: int, frame: FrameType | None) -> None:
+        del frame
+        if self.requested:
+            raise KeyboardInterrupt
+        self.signum = signum
+        log.warning("%s: saving a checkpoint and stopping (again to abort)", signal_name(signum))
+
+
+def signal_name(signum: int | None) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum or signal.SIGTERM).name
+
+
+@contextmanager
+def stop_on_signals(request: StopRequest) -> Iterator[StopRequest]:
+    """`request` handles SIGINT and SIGTERM within the block; the handlers before it are put back after."""
+    previous = {s: signal.signal(s, request.handle) for s in SIGNALS}
+    try:
+        yield request
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)

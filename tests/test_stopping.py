@@ -1,0 +1,32 @@
+"""The trainers' stop on a signal (`orchestration.stopping`), with real signals to this process."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+
+from orchestration.stopping import StopRequest, signal_name, stop_on_signals
+
+
+def test_a_first_signal_asks_for_a_stop_a_second_aborts_and_the_handlers_come_back():
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    request = StopRequest()
+    with stop_on_signals(request):
+        assert not request.requested
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert request.requested and request.signum == signal.SIGTERM
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+        assert request.signum == signal.SIGTERM  # the first signal is the one that stopped the run
+    assert {s: signal.getsignal(s) for s in before} == before
+    ctrl_c = StopRequest()
+    with pytest.raises(RuntimeError), stop_on_signals(ctrl_c):
+        os.kill(os.getpid(), signal.SIGINT)
+        raise RuntimeError  # the handlers come back when the run fails too
+    assert ctrl_c.signum == signal.SIGINT and {s: signal.getsignal(s) for s in before} == before
+
+
+def test_signal_names_are_what_a_user_pressed_or_sent():
+    assert signal_name(signal.SIGINT) == "Ctrl-C" and signal_name(signal.SIGTERM) == "SIGTERM"
