@@ -38,11 +38,11 @@ def signal_name(signum: int | None) -> str:
 
 
 @contextmanager
-def stop_on_signals(request: StopRequest) -> Iterator[StopRequest]:
+def stop_on_signals(request: StopRequest) -> Iterator[None]:
     """`request` handles SIGINT and SIGTERM within the block; the handlers before it are put back after."""
     previous = {s: signal.signal(s, request.handle) for s in SIGNALS}
     try:
-        yield request
+        yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)

@@ -36,6 +36,7 @@ from rllock.core.env import State, apply_chunk, initial_state, make_task, sample
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files import orbax_io
+from rllock.files.checkpoint import saved_steps
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task, named_tasks
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, guide_values, init_guide
@@ -829,16 +830,17 @@ def test_train_guide_on_snapshots_stops_on_sigterm_with_a_checkpoint_and_resumes
     the signal past the periodic ones, the resume command, exit 128 + 15; the resume goes on from it."""
     _snapshot(tmp_path / "a.npz", 1, 40)
     out = tmp_path / "run"
+    saved = out / "checkpoints"
     flags = ["--batch-size", "16", "--checkpoint-minutes", "0.05", "--logdir", str(out)]
     cli = [sys.executable, "-m", "orchestration.cli", "train-guide"]
     proc = subprocess.Popen([*cli, "--replay-from", str(tmp_path / "a.npz"), "--minutes", "5", *flags],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
     try:
         end = time.monotonic() + 120
-        while not _guide_steps(out):  # a periodic checkpoint: the loop runs, the handlers are in place
+        while not saved_steps(saved):  # a periodic checkpoint: the loop runs, the handlers are in place
             assert proc.poll() is None and time.monotonic() < end, proc.communicate()[0]
             time.sleep(0.5)
-        periodic = _guide_steps(out)[-1]
+        periodic = saved_steps(saved)[-1]
         time.sleep(1)
         proc.send_signal(signal.SIGTERM)
         text, _ = proc.communicate(timeout=120)
@@ -848,16 +850,11 @@ def test_train_guide_on_snapshots_stops_on_sigterm_with_a_checkpoint_and_resumes
     assert proc.returncode == 143, text
     assert "SIGTERM: saving a checkpoint" in text and "Traceback" not in text
     assert f"rllock train-guide --resume {out}" in text
-    stopped = _guide_steps(out)[-1]
+    stopped = saved_steps(saved)[-1]
     assert stopped > periodic
-    code, said, err = run_cli("train-guide", "--resume", str(out), "--max-learner-steps", str(stopped + 5))
+    code, _, err = run_cli("train-guide", "--resume", str(out), "--max-learner-steps", str(stopped + 5))
     assert code == 0, err
-    assert f"resuming {out} at learner step {stopped}" in err and _guide_steps(out)[-1] == stopped + 5
-
-
-def _guide_steps(logdir: Path) -> list[int]:
-    folder = logdir / "checkpoints"
-    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
+    assert f"resuming {out} at learner step {stopped}" in err and saved_steps(saved)[-1] == stopped + 5
 
 
 def test_train_guide_on_snapshots_refuses_bad_ones_in_one_line(tmp_path):

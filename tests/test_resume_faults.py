@@ -20,6 +20,7 @@ from helpers import tiny_flags
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from rllock.config import MCTSConfig
+from rllock.files.checkpoint import saved_steps
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
 TINY = tiny_flags()
@@ -36,8 +37,7 @@ def _train(*args: str) -> subprocess.Popen:
 
 
 def _steps(logdir: Path) -> list[int]:
-    folder = logdir / "checkpoints"
-    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
+    return saved_steps(logdir / "checkpoints")
 
 
 def _wait_for(
