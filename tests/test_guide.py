@@ -226,7 +226,7 @@ def test_a_rollouts_reach_is_the_share_of_the_pieces_left_it_placed():
     # One expansion samples the root's children (and their continuations, the lookahead): one piece of
     # the six to place.
     assert rollout_reach(task, initial_state(task), seed=0, expansions=1) == 1 / 6
-    # sofa K=19 has no known assembly: from its root, rollouts reach deeper the more they may expand,
+    # sofa K=19 needs more than 300 expansions from its root: rollouts reach deeper the more they may expand,
     # since the same seed with a larger budget runs the smaller one's restarts first.
     sofa = make_task("sofa", 19)
     reach = [rollout_reach(sofa, initial_state(sofa), seed=0, expansions=e) for e in (1, 10, 100, 300)]

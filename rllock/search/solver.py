@@ -386,13 +386,17 @@ class _Expander:
         """Give the threads this node's samples leave idle the samples of the node the search will most
         likely expand next: the child `children_of` will put last among those sampled so far
         (`pop_rank`), seeded from a copy of the generator as the search will seed them if that child is
-        the one it takes. A wrong guess costs the samples it started, each on a thread that was idle
-        when it started (the next node's samples may wait for them)."""
+        the one it takes. In the remainder's order that child is known once every child before it is
+        sampled, and only then is it guessed (threads finish out of order under load). A wrong guess,
+        in the other order, costs the samples it started, each on a thread that was idle when it started
+        (the next node's samples may wait for them)."""
         done = [(i, f.result()[1]) for i, f in enumerate(futures) if f.done() and len(f.result()[0])]
         if not done:
             return
         by_remainder = self.config.by_remainder(self.task, self.task.pieces - states[0].placed)
         best = max(done, key=lambda d: pop_rank(d[0], d[1], by_remainder))[0]
+        if by_remainder and not all(f.done() for f in futures[:best]):
+            return  # an earlier child may still find a continuation: wait until the guess is certain
         grand = futures[best].result()[0]
         if states[best].placed + 1 >= self.target:
             return  # the next node is an assembly or samples nothing
