@@ -37,6 +37,12 @@ def signal_name(signum: int | None) -> str:
     return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum or signal.SIGTERM).name
 
 
+def exit_status(signum: int | None) -> int:
+    """The exit status of a run stopped by `signum` (None: Ctrl-C), as a shell reports a process killed
+    by it: 130 after Ctrl-C, 143 after SIGTERM."""
+    return 128 + int(signum or signal.SIGINT)
+
+
 @contextmanager
 def stop_on_signals(request: StopRequest) -> Iterator[None]:
     """`request` handles SIGINT and SIGTERM within the block; the handlers before it are put back after."""

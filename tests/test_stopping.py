@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 
 import pytest
 
-from orchestration.stopping import StopRequest, signal_name, stop_on_signals
+from orchestration.stopping import StopRequest, exit_status, signal_name, stop_on_signals
 
 
 def test_a_first_signal_asks_for_a_stop_a_second_aborts_and_the_handlers_come_back():
@@ -30,3 +31,11 @@ def test_a_first_signal_asks_for_a_stop_a_second_aborts_and_the_handlers_come_ba
 
 def test_signal_names_are_what_a_user_pressed_or_sent():
     assert signal_name(signal.SIGINT) == "Ctrl-C" and signal_name(signal.SIGTERM) == "SIGTERM"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_runs_exit_status_is_the_shells_for_its_signal(signum):
+    # What the shell reports for a process the signal killed, the status scripts and schedulers test.
+    shell = f"sh -c 'kill -{int(signum)} $$'; echo $?"
+    killed = subprocess.run(["sh", "-c", shell], capture_output=True, text=True, check=True)
+    assert exit_status(signum) == int(killed.stdout) and exit_status(None) == exit_status(signal.SIGINT)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -25,6 +24,7 @@ from orchestration.cli.common import (
 )
 from orchestration.cli.flags import add_flags, from_flags, given_flags
 from orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
+from orchestration.stopping import exit_status
 from rllock.config import EVALUATION_MODES, METHODS, TrainConfig, with_method_defaults
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
@@ -54,7 +54,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"train: stopped at learner step {result.steps}; resume with: "
             f"rllock train --resume {result.logdir}\n"
         )
-        return 128 + int(result.stop_signal or signal.SIGINT)  # 130 after Ctrl-C, 143 after SIGTERM
+        return exit_status(result.stop_signal)
     val, best = result.validation, result.best_success_rate
     last = "none (it did not fit the budget)" if val is None else f"{100 * val.success_rate:.1f}% valid"
     sys.stdout.write(
@@ -237,7 +237,7 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
     result = train_guide(config, resume=bool(args.resume))
     if result.interrupted:
         sys.stdout.write(f"train-guide: stopped; resume with: rllock train-guide --resume {result.logdir}\n")
-        return 128 + int(result.stop_signal or signal.SIGINT)
+        return exit_status(result.stop_signal)
     done = (
         f"on the states of {config.replay_from}"
         if config.replay_from
