@@ -217,12 +217,10 @@ def test_a_restart_keeps_finished_jobs_and_runs_queued_ones(server):
     for job in blockers:
         server.wait(job["id"], 60, until=("running",))
     assert server.stop() == 0
-    states = [
-        json.loads((server.data / "jobs" / j["id"] / "job.json").read_text())["state"] for j in blockers
-    ]
-    pending_state = json.loads((server.data / "jobs" / pending["id"] / "job.json").read_text())["state"]
+    on_disk = [server.data / "jobs" / j["id"] / "job.json" for j in (*blockers, pending)]
+    states = [json.loads(path.read_text())["state"] for path in on_disk]
     up = server.start()  # before any assertion, so that a failure here leaves the server to the next test
-    assert states == ["running", "running"] and pending_state == "queued", (states, pending_state)
+    assert states == ["running", "running", "queued"], states
     assert server.get("/").ok
     jobs = {j["id"]: j for j in server.get("/api/jobs").json()}
     for job in finished:
