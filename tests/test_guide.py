@@ -382,44 +382,6 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
         assert verify_labels(found, task.removal).valid
 
 
-def test_a_dive_state_is_taken_again_until_its_takes_are_spent_or_a_new_one_is_valued_above_it():
-    task = make_task("cube5", 13)
-    guide = replace(_untrained(3), horizon=5)
-    config = SearchConfig(dives=2, dive_takes=3)
-    kept: list = []
-    deadline = time.monotonic() + 3600  # the budgets bound the dives; a loaded machine must not cut them
-
-    def dive(config: SearchConfig, rng: np.random.Generator, kept: list) -> State | None:
-        return _best_dive(
-            task, rng, config, 10_000, deadline, SearchStats(), lambda: False, None, guide, None, kept
-        )[0]
-
-    rng = np.random.default_rng(11)
-    begun = [dive(config, rng, kept) for _ in range(8)]
-    # Reference: the same dives one by one; each restart takes the best-valued state with takes left.
-    again, pool = np.random.default_rng(11), []  # [value, takes left, labels]
-    for begin in begun:
-        for _ in range(2):
-            state, _ = _dfs(task, again, config, 10_000, deadline, 13 - 1 - 5, SearchStats())
-            if state is not None:
-                pool.append([float(guide.values(task, [state], [1.0])[0]), 3, state.labels])
-        best = max(range(len(pool)), key=lambda i: (pool[i][0], i))  # of equal values, the newest
-        assert begin is not None and np.array_equal(begin.labels, pool[best][2])
-        pool[best][1] -= 1
-        if pool[best][1] == 0:
-            pool.pop(best)
-    taken = [b.labels.tobytes() for b in begun]
-    assert max(taken.count(t) for t in taken) == 3  # the best was taken again, at most its takes
-    assert len(set(taken)) > 1  # and newer dives valued above it were taken in its stead
-    # One take each: no state begins two restarts (the search before dive_takes).
-    once, rng = [], np.random.default_rng(11)
-    for _ in range(8):
-        begin = dive(replace(config, dive_takes=1), rng, once)
-        assert begin is not None
-        taken.append(begin.labels.tobytes())
-    assert len(set(taken[8:])) == 8
-
-
 def test_the_dives_share_grows_past_its_units_in_proportion_to_the_solvers_expansions():
     config, unit = SearchConfig(dive_share=0.5, dive_share_grows_after=4), 100
     allowed = [dive_allowance(config, unit, used) for used in (0, 200, 400, 800, 1600)]

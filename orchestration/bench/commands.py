@@ -122,13 +122,6 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
         "0 never dives (SearchConfig.dive_share; default: the search's own)",
     )
     p.add_argument(
-        "--dive-takes",
-        type=int,
-        default=None,
-        help="how many diving restarts may go on from one dive state while none new is valued above it "
-        "(SearchConfig.dive_takes; default: the search's own)",
-    )
-    p.add_argument(
         "--untrained-seed",
         type=int,
         default=0,

@@ -381,8 +381,6 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         raise RLLockError(f"--dives must be at least 1, got {args.dives}")
     if args.dive_share is not None and not args.dive_share >= 0:
         raise RLLockError(f"--dive-share must be at least 0, got {args.dive_share}")
-    if args.dive_takes is not None and args.dive_takes < 1:
-        raise RLLockError(f"--dive-takes must be at least 1, got {args.dive_takes}")
     if args.untrained_seed < 0:
         raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
     config = replace(
@@ -392,7 +390,6 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         demote_by=args.demote_by,
         dives=config.dives if args.dives is None else args.dives,
         dive_share=config.dive_share if args.dive_share is None else args.dive_share,
-        dive_takes=config.dive_takes if args.dive_takes is None else args.dive_takes,
     )
     guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
     rows = bench_guide(

@@ -141,11 +141,6 @@ class SearchConfig:
     on 18 seeds", "Which search the actors run").
     Tasks with at most `Guide.horizon` + 1 pieces have no dive state: there the guided search is the
     solver's."""
-    dive_takes: int = 1
-    """With a guide network: how many diving restarts may go on from one dive state. A dive state taken
-    stays in the pool (`_best_dive`) until taken this often, so while no new dive is valued above it,
-    the next diving restarts search below it again, each with new draws: the remainder the network
-    judges best gets more of the search. 1 takes each once, as before."""
     dive_share: float = 0.5
     """With a guide network: the restarts that dive are a second Luby sequence beside the solver's own,
     on a generator of their own, and one begins only while the expansions of that sequence (with its
@@ -623,7 +618,7 @@ def _search(
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
-    kept: list[tuple[float, int, State]] = []  # dive states, values and takes left (`_best_dive`)
+    kept: list[tuple[float, State]] = []  # dive states not yet taken, with their values (`_best_dive`)
     solver = _Sequence(np.random.default_rng(seed))
     diver = _Sequence(np.random.default_rng([seed, DIVE_STREAM]))
     depth = 0 if guide is None else dive_depth(task, guide)
@@ -720,13 +715,12 @@ def _best_dive(
     report: Callable[[SearchStats], None] | None,
     guide: Guide | None,
     pool: SamplingPool | None,
-    kept: list[tuple[float, int, State]],
+    kept: list[tuple[float, State]],
 ) -> tuple[State | None, int]:
     """Where a restart begins (`SearchConfig.dives`): `config.dives` dives from the root to `guide.horizon`
-    pieces before the end go into `kept` (the dive states of earlier restarts not yet taken
-    `config.dive_takes` times, with their values and takes left, best last, at most `DIVE_POOL`), and the
-    best of it is taken; with the expansions the dives took. (None, 0), the root, without a guide or with
-    one dive."""
+    pieces before the end go into `kept` (the dive states of earlier restarts not yet taken, with their
+    values, best last, at most `DIVE_POOL`), and the best of it is taken; with the expansions the dives
+    took. (None, 0), the root, without a guide or with one dive."""
     if guide is None or config.dives <= 1:
         return None, 0
     depth = dive_depth(task, guide)
@@ -740,15 +734,10 @@ def _best_dive(
             reached.append(state)
     # One share for all: a dive state's lookahead share among its own siblings says nothing across dives.
     values = guide.values(task, reached, [1.0] * len(reached))
-    kept += [(v, config.dive_takes, s) for v, s in zip(values.tolist(), reached)]
+    kept += zip(values.tolist(), reached)
     kept.sort(key=lambda t: t[0])  # stable: of equal values, the newest last
     del kept[: max(0, len(kept) - DIVE_POOL)]
-    if not kept:
-        return None, used
-    value, takes, best = kept.pop()
-    if takes > 1:
-        kept.append((value, takes - 1, best))  # still the best: a new dive must be valued above it
-    return best, used
+    return (kept.pop()[1] if kept else None), used
 
 
 def reach_depth(
