@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import subprocess
@@ -39,7 +40,7 @@ def test_a_stopped_runs_exit_status_is_the_shells_for_its_signal(signum):
     shell = f"sh -c 'kill -{int(signum)} $$'; echo $?"
     # From the signal's default: a suite started in the background (`cmd &` in a script) inherits SIGINT
     # ignored, which no shell can undo, and the inner shell would then live on and report 0.
-    default = lambda: signal.signal(signum, signal.SIG_DFL)  # noqa: E731
+    default = functools.partial(signal.signal, signum, signal.SIG_DFL)
     killed = subprocess.run(
         ["sh", "-c", shell], capture_output=True, text=True, check=True, preexec_fn=default
     )
