@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +42,7 @@ class SearchReport:
     """One search of the curriculum, as the driver counts it."""
 
     task: str  # "shape K=.. removal"
+    cell: str  # the task's label in --cells ("" for a drawn task)
     guided: bool
     solved: bool
     placed: int  # the most pieces placed
@@ -138,12 +140,18 @@ def search_config(config: GuideTrainConfig, guided: bool) -> SearchConfig:
 
 
 def run_search(
-    config: GuideTrainConfig, seed: int, number: int, guide: Guide | None, named: list[Task] | None = None
+    config: GuideTrainConfig,
+    seed: int,
+    number: int,
+    guide: Guide | None,
+    named: list[Task] | None = None,
+    pieces: Mapping[str, int] | None = None,
 ) -> tuple[Labelled, bool, int, Task]:
     """Search number `number` of an actor seeded `seed` on a task of the curriculum (one of `named`, the
-    tasks of `--cells`, when there are any): (its labelled probes, solved, pieces placed, task)."""
+    tasks of `--cells`, when there are any, at the K `pieces` gives its label): (its labelled probes,
+    solved, pieces placed, task)."""
     rng = np.random.default_rng([seed, number])
-    task = draw_task(rng, config, named)
+    task = draw_task(rng, config, named, pieces)
     probes = Probes(task, config.probes * PROBE_CANDIDATES, config.min_left, config.max_left, rng)
     stats = SearchStats()
     found = search(
@@ -168,8 +176,11 @@ class GuideActor:
         self.version = -1
         self.searches = 0
 
-    def run(self, weights: list, version: int, buffer: Any) -> SearchReport:
-        """`weights` is [ObjectRef of the guide's parameters]: fetched only for a new version."""
+    def run(
+        self, weights: list, version: int, buffer: Any, pieces: Mapping[str, int] | None = None
+    ) -> SearchReport:
+        """`weights` is [ObjectRef of the guide's parameters]: fetched only for a new version; `pieces`
+        the K of each cell of `--cells` now (`--edge`)."""
         if version != self.version:
             self.params, self.version = ray.get(weights[0]), version
         start = time.perf_counter()
@@ -179,12 +190,15 @@ class GuideActor:
             if guided
             else None
         )
-        labelled, solved, placed, task = run_search(self.config, self.seed, self.searches, guide, self.named)
+        labelled, solved, placed, task = run_search(
+            self.config, self.seed, self.searches, guide, self.named, pieces
+        )
         self.searches += 1
         target = value_target(labelled, self.config.label)
         counts = ray.get(buffer.add.remote(labelled.window, labelled.features, target, labelled.group))
         return SearchReport(
             f"{task.shape_name} K={task.pieces} {task.removal}",
+            task.shape_name if self.named else "",
             guided,
             solved,
             placed,

@@ -20,7 +20,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +34,12 @@ from learner.guide_learner import GuideBuffer, GuideLearner, judge
 from orchestration.pool import Calls, on_driver_node, start_ray
 from orchestration.stopping import StopRequest, stop_on_signals
 from rllock.config import GuideConfig, GuideTrainConfig, from_json
+from rllock.core.env import Task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
 from rllock.files.provenance import provenance
-from rllock.search.curriculum import named_tasks
+from rllock.search.curriculum import edge_pieces, named_tasks
 from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import guide_metadata, read_guide_metadata
 
@@ -58,6 +59,7 @@ class GuideCounters:
     states: int = 0
     seconds: float = 0.0
     version: int = 0
+    edge: dict[str, int] = field(default_factory=dict)  # `--edge`: each cell's K now, by its label
 
     def add(self, report: SearchReport) -> None:
         self.searches += 1
@@ -154,12 +156,11 @@ def train_guide(config: GuideTrainConfig, *, resume: bool = False) -> GuideResul
         from orchestration.guide_offline import train_offline  # it builds on this module
 
         return train_offline(config, resume=resume)
-    if config.cells:
-        named_tasks(config.cells)  # a bad cell is one line here, not an actor's traceback
+    named = named_tasks(config.cells) if config.cells else []  # a bad cell is one line here
     began = time.monotonic()
     started = start_ray(config.address)  # before JAX's threads: Ray forks
     try:
-        run = _GuideRun(config, began, resume)
+        run = _GuideRun(config, began, resume, named)
         try:
             with stop_on_signals(run.stop):
                 return run.loop()
@@ -181,13 +182,16 @@ def _start_buffer(config: GuideTrainConfig) -> Any:
 
 
 class _GuideRun:
-    def __init__(self, config: GuideTrainConfig, began: float, resume: bool):
+    def __init__(self, config: GuideTrainConfig, began: float, resume: bool, named: list[Task]):
         self.config, self.began = config, began
         self.logdir = Path(config.logdir)
         self.learner = new_learner(config)
         self.counters, self.sessions = GuideCounters(), []
         if resume:
             self._restore()
+        self.cells = {task.shape_name: task for task in named}
+        if config.edge and not self.counters.edge:
+            self.counters.edge = {label: task.pieces for label, task in self.cells.items()}
         self.sessions.append(provenance())
         self.logdir.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(str(self.logdir), purge_step=self.learner.step if resume else None)
@@ -227,7 +231,10 @@ class _GuideRun:
 
     def _hand(self, actor: Any) -> None:
         """Give `actor` its next search, with the newest weights."""
-        self.calls.submit(actor, actor.run.remote(self.weights, self.counters.version, self.buffer), None)
+        edge = dict(self.counters.edge) or None
+        self.calls.submit(
+            actor, actor.run.remote(self.weights, self.counters.version, self.buffer, edge), None
+        )
 
     def loop(self) -> GuideResult:
         c, config = self.counters, self.config
@@ -302,6 +309,9 @@ class _GuideRun:
             report.winning,
             report.seconds,
         )
+        if report.cell in c.edge:
+            c.edge[report.cell] = edge_pieces(c.edge[report.cell], report.solved, self.cells[report.cell])
+            self.writer.add_scalar(f"edge/{report.cell}", c.edge[report.cell], c.searches)
         step = self.learner.step
         self.writer.add_scalar("search/solved", float(report.solved), c.searches)
         self.writer.add_scalar("search/placed_share", report.placed / max(report.pieces - 1, 1), c.searches)

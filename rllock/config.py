@@ -369,6 +369,11 @@ class GuideTrainConfig:
     cells: str = ""
     """Instead of the random curriculum, only these tasks, as `rllock bench guide --cells` writes them
     (mario:60,desia-bunny:80:path): a guide taught the tasks a user cannot solve."""
+    edge: bool = False
+    """With --cells: each cell's K moves after each of its searches, up (smaller pieces) after a solve and
+    down after a failure, by 2% (at least 1), within [K/2, N/4]; the searches sit at the shape's edge of
+    failure, where rollouts tell children apart (at pieces of 11 voxels every search of three meshes was
+    solved and 2,112 of 3,061 labels were 1.00, docs/benchmarks.md). Off: every cell keeps its K."""
     replay_from: str = ""
     """Instead of searching, train on replay snapshots already made, comma-separated: train-guide runs
     (their LOGDIR/replay.npz) or snapshot files. The learner alone, no Ray and no actors, on all their
@@ -416,6 +421,8 @@ class GuideTrainConfig:
             raise RLLockError(f"--rank-weight must be >= 0, got {self.rank_weight}")
         if self.max_learner_steps is not None and self.max_learner_steps < 1:
             raise RLLockError(f"--max-learner-steps must be at least 1, got {self.max_learner_steps}")
+        if self.edge and not self.cells:
+            raise RLLockError("--edge moves the K of the tasks in --cells: give --cells too")
         if self.batch_size % 2:
             raise RLLockError(f"--batch-size must be even (pairs of siblings), got {self.batch_size}")
         if self.actors < 0:

@@ -38,7 +38,7 @@ from rllock.errors import RLLockError
 from rllock.files import orbax_io
 from rllock.files.checkpoint import saved_steps
 from rllock.search.base import derive_seed
-from rllock.search.curriculum import blob, draw_task, named_tasks
+from rllock.search.curriculum import blob, draw_task, edge_pieces, named_tasks
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, guide_values, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide, read_guide_metadata
 from rllock.search.solver import (
@@ -548,6 +548,41 @@ def test_named_cells_replace_the_curriculum_and_bad_ones_are_one_line_errors():
         assert "\n" not in str(error.value)
     with pytest.raises(RLLockError, match="--max-learner-steps must be at least 1"):
         GuideTrainConfig(max_learner_steps=0).validate()
+    with pytest.raises(RLLockError, match="--edge moves the K of the tasks in --cells"):
+        GuideTrainConfig(edge=True).validate()
+
+
+def test_edge_moves_a_cells_k_up_after_a_solve_and_down_after_a_failure_within_its_bounds():
+    cube6, dog = named_tasks("cube6:20,desia-dog:60")  # N = 216 and 581
+    assert [edge_pieces(20, True, cube6), edge_pieces(20, False, cube6)] == [21, 19]  # 2% of 20 < 1
+    assert [edge_pieces(60, True, dog), edge_pieces(60, False, dog)] == [61, 59]
+    assert [edge_pieces(120, True, dog), edge_pieces(120, False, dog)] == [122, 118]  # 2% of 120
+    # Within [K/2, N/4]: pieces of at least 4 voxels, never under half the cell's K.
+    assert edge_pieces(54, True, cube6) == 54 and edge_pieces(10, False, cube6) == 10
+    assert edge_pieces(145, True, dog) == 145 and edge_pieces(30, False, dog) == 30
+    # A long run of failures walks down to K/2 and stays; of solves, up to N/4.
+    k = 20
+    for _ in range(30):
+        k = edge_pieces(k, False, cube6)
+    assert k == 10
+    for _ in range(60):
+        k = edge_pieces(k, True, cube6)
+    assert k == 54
+    # A cell asked at pieces under 4 voxels keeps its K as the top; a K a proof rules out is not taken.
+    (tiny,) = named_tasks("cube4:20")
+    assert edge_pieces(20, True, tiny) == 20
+    (flat,) = named_tasks("box:8x8x1:2")
+    assert edge_pieces(2, True, flat) == 2  # a slab one voxel thick has assemblies only at K = 2
+    # The drawn task is the cell's at the K given for its label.
+    config = GuideTrainConfig(cells="cube6:20,desia-dog:60", edge=True)
+    drawn = {
+        (t.shape_name, t.pieces)
+        for t in (
+            draw_task(np.random.default_rng([5, i]), config, [cube6, dog], {"cube6:20": 23})
+            for i in range(20)
+        )
+    }
+    assert drawn == {("cube6:20", 23), ("desia-dog:60", 60)}
 
 
 def test_the_guide_learner_fits_the_buffers_targets_and_orders_siblings():
@@ -1058,9 +1093,10 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     run = tmp_path / "run"
-    # The curriculum of two named tasks (`--cells`), which the resumed run keeps.
+    # The curriculum of two named tasks (`--cells`), which the resumed run keeps, each at its edge of
+    # failure (`--edge`: its K moves with the outcome of each of its searches).
     small = ["--search-seconds", "2", "--batch-size", "16", "--buffer-capacity", "4000", "--actors", "1",
-             "--cells", "cube4:7,cube5:12", "--guide-features", "4,8", "--guide-hidden", "16",
+             "--cells", "cube4:7,cube5:12", "--edge", "--guide-features", "4,8", "--guide-hidden", "16",
              "--publish-every", "5", "--checkpoint-minutes", "0.2",
              # One cheap rollout per child: the first labels reach the learner within its 36 s on a slow,
              # loaded VM too (three rollouts of 512 expansions each did not, once).
@@ -1077,6 +1113,13 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     assert code == 0, err
     searched = set(re.findall(r"search \d+ \((\S+) K=", err))
     assert searched and searched <= {"cube4:7", "cube5:12"}, searched
+    # One actor: each search of a cell is at the K its previous search left (`edge_pieces`).
+    cells = {task.shape_name: task for task in named_tasks("cube4:7,cube5:12")}
+    edge = {"cube4:7": 7, "cube5:12": 12}
+    for cell, pieces, outcome in re.findall(r"search \d+ \((\S+) K=(\d+) straight, \w+\): (solved|not)", err):
+        assert int(pieces) == edge[cell], (cell, pieces, edge, err)
+        edge[cell] = edge_pieces(int(pieces), outcome == "solved", cells[cell])
+    assert edge != {"cube4:7": 7, "cube5:12": 12}, err
     # The final checkpoint is skipped when the last periodic one already holds the same step and searches.
     saved = re.findall(r"checkpoint at learner step \d+ \(\d+ searches", err)
     assert saved and len(saved) == len(set(saved)), saved
@@ -1088,6 +1131,8 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     assert {"losses/value", "losses/siblings", "search/solved", "buffer/size", "heldout/siblings",
             "heldout/share", "heldout/search_order",
             "trained/siblings"} <= set(events.Tags()["scalars"])  # fmt: skip
+    assert any(tag.startswith("edge/cube") for tag in events.Tags()["scalars"]), events.Tags()
+    assert read_guide_metadata(run / "checkpoints" / str(steps[-1]))["counters"]["edge"] == edge
     assert "siblings ordered rightly on held-out nodes" in err
     guide = load_guide(run)
     task = make_task("cube4", 7)
@@ -1107,3 +1152,7 @@ def test_train_guide_learns_on_ray_writes_checkpoints_and_events_and_resumes(tmp
     resumed = read_guide_metadata(run / "checkpoints" / str(limit))["config"]
     assert resumed["actors"] == 2 and resumed["search_seconds"] == 2 and resumed["max_learner_steps"] == limit
     assert set(re.findall(r"search \d+ \((\S+) K=", err)) <= {"cube4:7", "cube5:12"}
+    # Each cell goes on at the K the run stopped at: a cell's first search here began before any of its
+    # searches ended.
+    first = dict(reversed(re.findall(r"search \d+ \((\S+) K=(\d+)", err)))
+    assert all(int(pieces) == edge[cell] for cell, pieces in first.items()), (first, edge)

@@ -1,6 +1,7 @@
 """The guide network's curriculum (`rllock train-guide`): a task per search, drawn from random compact
 shapes and shipped shapes, with K from 5 to `max_pieces` and both removal modes; or, with `--cells`,
-drawn from the tasks named there (a guide taught the one task a user cannot solve).
+drawn from the tasks named there (a guide taught the one task a user cannot solve), each at its K or,
+with `--edge`, at a K that moves with its searches' outcomes (`edge_pieces`).
 
 Pieces have 4 to 40 voxels (n drawn log-uniformly, so that small pieces, where searches fail, are as
 common as large ones), and K = N // n within [5, max_pieces]. mario and spider, the shapes the
@@ -10,7 +11,8 @@ zero-shot; so are their meshes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -68,10 +70,33 @@ def named_tasks(spec: str) -> list[Task]:
     return tasks
 
 
-def draw_task(rng: np.random.Generator, config: GuideTrainConfig, named: list[Task] | None = None) -> Task:
-    """A feasible task of the curriculum (module docstring): one of `named` when there are any."""
+EDGE_STEP = 0.02  # of K: a step of `--edge`
+
+
+def edge_pieces(pieces: int, solved: bool, task: Task) -> int:
+    """`--edge`: the K of `task`'s cell (given as `task.pieces`) for its next search, after a search at K =
+    `pieces` that `solved` or not: 2% more (at least one) after a solve, as many fewer after a failure,
+    kept within [K/2, N/4] (pieces of at least 4 voxels, unless the cell asked for smaller ones) and where
+    no proof rules an assembly out."""
+    step = max(1, round(EDGE_STEP * pieces))
+    low, high = max(2, task.pieces // 2), max(task.pieces, task.size // 4)
+    moved = int(np.clip(pieces + step if solved else pieces - step, low, high))
+    return moved if impossibility(replace(task, pieces=moved)) is None else pieces
+
+
+def draw_task(
+    rng: np.random.Generator,
+    config: GuideTrainConfig,
+    named: list[Task] | None = None,
+    pieces: Mapping[str, int] | None = None,
+) -> Task:
+    """A feasible task of the curriculum (module docstring): one of `named` when there are any, at the K
+    that `pieces` gives for its cell (`edge_pieces`; by its label), if any."""
     if named:
-        return named[int(rng.integers(len(named)))]
+        task = named[int(rng.integers(len(named)))]
+        if pieces and task.shape_name in pieces:
+            return replace(task, pieces=pieces[task.shape_name])
+        return task
     while True:
         if rng.random() < 0.5:
             name = str(SHAPES[rng.integers(len(SHAPES))])
