@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -311,7 +312,8 @@ class _GuideRun:
         )
         if report.cell in c.edge:
             c.edge[report.cell] = edge_pieces(c.edge[report.cell], report.solved, self.cells[report.cell])
-            self.writer.add_scalar(f"edge/{report.cell}", c.edge[report.cell], c.searches)
+            tag = re.sub(r"[^-/\w.]", "_", report.cell)  # as TensorBoard would, without its warning
+            self.writer.add_scalar(f"edge/{tag}", c.edge[report.cell], c.searches)
         step = self.learner.step
         self.writer.add_scalar("search/solved", float(report.solved), c.searches)
         self.writer.add_scalar("search/placed_share", report.placed / max(report.pieces - 1, 1), c.searches)
