@@ -242,3 +242,22 @@ def test_the_forked_command_answers_as_a_fresh_interpreter_does(data, tmp_path, 
     ):
         forked, fresh = run_cli(*args), _fresh_cli(args, 120)
         assert forked == fresh and forked[0] in (0, 1, 2), (args, forked, fresh)
+
+
+def _parsers(parser: argparse.ArgumentParser, name: str = "rllock"):
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command, sub in action.choices.items():
+                yield from _parsers(sub, f"{name} {command}")
+
+
+def test_every_commands_help_prints_with_its_flags_docs_as_written():
+    """argparse formats help strings with %: a config docstring's "2%" broke `train-guide --help`."""
+    from orchestration.cli.main import build_parser
+
+    helps = {name: parser.format_help() for name, parser in _parsers(build_parser())}
+    assert {"rllock solve", "rllock train-guide", "rllock bench guide"} <= set(helps)
+    assert "up (smaller pieces) after a solve and down after a failure, by 2%" in " ".join(
+        helps["rllock train-guide"].split()
+    )

@@ -111,7 +111,7 @@ def add_flags(
             raise ValueError(f"two config fields are called {name!r}: flags must be unique")
         seen.add(name)
         flag = "--" + name.replace("_", "-")
-        doc = field_docs(owner).get(name, "")
+        doc = field_docs(owner).get(name, "").replace("%", "%%")  # argparse formats help with %
         kind = _leaf_type(owner, name)
         default = (
             f.default
