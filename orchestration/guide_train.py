@@ -51,7 +51,7 @@ JUDGED_NODES = 200  # nodes held out, and as many trained on, judged at each che
 
 @dataclass
 class GuideCounters:
-    """Run totals that survive a resume."""
+    """Run totals, and where `--edge` has moved each cell's K, that survive a resume."""
 
     searches: int = 0
     solved: int = 0
