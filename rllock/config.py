@@ -371,9 +371,11 @@ class GuideTrainConfig:
     (mario:60,desia-bunny:80:path): a guide taught the tasks a user cannot solve."""
     edge: bool = False
     """With --cells: each cell's K moves after each of its searches, up (smaller pieces) after a solve and
-    down after a failure, by 2% (at least 1), within [K/2, N/4]; the searches sit at the shape's edge of
-    failure, where rollouts tell children apart (at pieces of 11 voxels every search of three meshes was
-    solved and 2,112 of 3,061 labels were 1.00, docs/benchmarks.md). Off: every cell keeps its K."""
+    down after a failure, to the next K whose last piece is under twice the others (the hardest K of the
+    next piece size: a K whose last piece takes many spare voxels is easy), within [K/2, N/4]; the
+    searches sit at the shape's edge of failure, where rollouts tell children apart (at pieces of 11
+    voxels every search of three meshes was solved and 2,112 of 3,061 labels were 1.00,
+    docs/benchmarks.md). Off: every cell keeps its K."""
     replay_from: str = ""
     """Instead of searching, train on replay snapshots already made, comma-separated: train-guide runs
     (their LOGDIR/replay.npz) or snapshot files. The learner alone, no Ray and no actors, on all their

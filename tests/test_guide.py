@@ -553,10 +553,21 @@ def test_named_cells_replace_the_curriculum_and_bad_ones_are_one_line_errors():
 
 
 def test_edge_moves_a_cells_k_up_after_a_solve_and_down_after_a_failure_within_its_bounds():
-    cube6, dog = named_tasks("cube6:20,desia-dog:60")  # N = 216 and 581
-    assert [edge_pieces(20, True, cube6), edge_pieces(20, False, cube6)] == [21, 19]  # 2% of 20 < 1
-    assert [edge_pieces(60, True, dog), edge_pieces(60, False, dog)] == [61, 59]
-    assert [edge_pieces(120, True, dog), edge_pieces(120, False, dog)] == [122, 118]  # 2% of 120
+    cube6, dog, mario = named_tasks("cube6:20,desia-dog:60,mario:60")  # N = 216, 581 and 548
+    # To the next K up or down whose last piece is under twice the others: the next piece size.
+    assert [edge_pieces(20, True, cube6), edge_pieces(20, False, cube6)] == [21, 19]
+    assert [edge_pieces(60, True, mario), edge_pieces(68, False, mario)] == [68, 60]  # pieces of 8 and 9
+    assert [edge_pieces(60, True, dog), edge_pieces(60, False, dog)] == [64, 58]
+    assert [edge_pieces(120, True, dog), edge_pieces(120, False, dog)] == [145, 116]
+    # Against the rule spelled out by brute force: the nearest K each way whose N mod K < N // K.
+    for task in (cube6, dog, mario):
+        n_all = task.size
+        for k in range(task.pieces // 2 + 1, n_all // 4):
+            tight = [j for j in range(task.pieces // 2, n_all // 4 + 1) if n_all % j < n_all // j]
+            up = min((j for j in tight if j > k), default=k)
+            down = max((j for j in tight if j < k), default=k)
+            moved = (edge_pieces(k, True, task), edge_pieces(k, False, task))
+            assert moved == (up, down), (task.shape_name, k)
     # Within [K/2, N/4]: pieces of at least 4 voxels, never under half the cell's K.
     assert edge_pieces(54, True, cube6) == 54 and edge_pieces(10, False, cube6) == 10
     assert edge_pieces(145, True, dog) == 145 and edge_pieces(30, False, dog) == 30
