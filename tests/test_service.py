@@ -166,7 +166,7 @@ def test_bad_input_is_one_line_and_no_job(server, fields, upload, status, words)
 def test_bad_ids_and_early_files(server):
     assert server.get("/api/jobs/nonsense").status_code == 404
     assert server.get("/api/jobs/0123456789ab/files/assembly.json").status_code == 404
-    job = server.job(shape="spider", pieces=20, time_limit=60)
+    job = server.job(shape="mario", pieces=60, time_limit=60)
     try:
         r = server.get(f"/api/jobs/{job['id']}/files/assembly.json")
         assert r.status_code == 409 and "no files" in r.json()["error"]
@@ -176,8 +176,8 @@ def test_bad_ids_and_early_files(server):
 
 
 def test_cancel_and_the_client_limit(server):
-    # spider K=20: no assembly known to any search of ours (docs/benchmarks.md), so these run until cancelled.
-    jobs = [server.job(shape="spider", pieces=20, time_limit=100, seed=s) for s in range(5)]
+    # mario K=60: the solver finds no assembly in 300 s (docs/benchmarks.md), so these run until cancelled.
+    jobs = [server.job(shape="mario", pieces=60, time_limit=100, seed=s) for s in range(5)]
     r = server.post("/api/jobs", data={"shape": "cube4", "pieces": "6"})
     assert r.status_code == 429 and "limit" in r.json()["error"]
     running = server.wait(jobs[0]["id"], 60, until=("running",))
@@ -210,9 +210,9 @@ def test_concurrent_generate_jobs_share_network_batches(server):
 def test_a_restart_keeps_finished_jobs_and_runs_queued_ones(server):
     finished = [j for j in server.get("/api/jobs").json() if j["state"] == "done"]
     assert finished
-    # Two spider K=20 jobs hold both slots (no assembly known), so the ring job is surely still
+    # Two mario K=60 jobs hold both slots (minutes to an assembly, if any), so the ring job is surely still
     # queued when the server stops: alone it can finish before the stop does.
-    blockers = [server.job(shape="spider", pieces=20, time_limit=100, seed=s) for s in range(2)]
+    blockers = [server.job(shape="mario", pieces=60, time_limit=100, seed=s) for s in range(2)]
     pending = server.job(shape="ring", pieces=15, time_limit=60, seed=2)
     for job in blockers:
         server.wait(job["id"], 60, until=("running",))
