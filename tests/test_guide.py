@@ -33,6 +33,7 @@ from learner.guide_learner import (
 )
 from rllock.config import GuideConfig, GuideTrainConfig, to_json
 from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
+from rllock.core.feasibility import impossibility
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files import orbax_io
@@ -559,11 +560,17 @@ def test_edge_moves_a_cells_k_up_after_a_solve_and_down_after_a_failure_within_i
     assert [edge_pieces(60, True, mario), edge_pieces(68, False, mario)] == [68, 60]  # pieces of 8 and 9
     assert [edge_pieces(60, True, dog), edge_pieces(60, False, dog)] == [64, 58]
     assert [edge_pieces(120, True, dog), edge_pieces(120, False, dog)] == [145, 116]
-    # Against the rule spelled out by brute force: the nearest K each way whose N mod K < N // K.
-    for task in (cube6, dog, mario):
+    # Against the rule spelled out by brute force: the nearest K each way whose N mod K < N // K and that
+    # no proof rules out (spider: K = 20-40 are impossible, docs/benchmarks.md).
+    (spider,) = named_tasks("spider:15")
+    for task in (cube6, dog, mario, spider):
         n_all = task.size
+        tight = [
+            j
+            for j in range(task.pieces // 2, n_all // 4 + 1)
+            if n_all % j < n_all // j and impossibility(replace(task, pieces=j)) is None
+        ]
         for k in range(task.pieces // 2 + 1, n_all // 4):
-            tight = [j for j in range(task.pieces // 2, n_all // 4 + 1) if n_all % j < n_all // j]
             up = min((j for j in tight if j > k), default=k)
             down = max((j for j in tight if j < k), default=k)
             moved = (edge_pieces(k, True, task), edge_pieces(k, False, task))
@@ -584,6 +591,7 @@ def test_edge_moves_a_cells_k_up_after_a_solve_and_down_after_a_failure_within_i
     assert edge_pieces(20, True, tiny) == 20
     (flat,) = named_tasks("box:8x8x1:2")
     assert edge_pieces(2, True, flat) == 2  # a slab one voxel thick has assemblies only at K = 2
+    assert edge_pieces(19, True, spider) == 19  # K = 20-52: none open whose last piece is under 2n
     # The drawn task is the cell's at the K given for its label.
     config = GuideTrainConfig(cells="cube6:20,desia-dog:60", edge=True)
     drawn = {

@@ -82,16 +82,17 @@ def edge_pieces(pieces: int, solved: bool, task: Task) -> int:
     """`--edge`: the K of `task`'s cell (given as `task.pieces`) for its next search, after a search at K =
     `pieces` that `solved` or not: the next K up after a solve, down after a failure, at which the last
     piece is under twice the others (`tight`: the hardest K of the next piece size, smaller or larger);
-    within [K/2, N/4] (pieces of at least 4 voxels, unless the cell asked for smaller ones), and only where
-    no proof rules an assembly out; else K stays."""
+    within [K/2, N/4] (pieces of at least 4 voxels, unless the cell asked for smaller ones), passing over a
+    K a proof rules out (the beetle at 24 voxels: K = 73, whose two antenna tips no pieces of 10 can
+    hold); K stays when there is none."""
     low, high = max(2, task.pieces // 2), max(task.pieces, task.size // 4)
     step = 1 if solved else -1
     moved = pieces + step
-    while low <= moved <= high and not tight(task.size, moved):
+    while low <= moved <= high:
+        if tight(task.size, moved) and impossibility(replace(task, pieces=moved)) is None:
+            return moved
         moved += step
-    if not low <= moved <= high:
-        return pieces
-    return moved if impossibility(replace(task, pieces=moved)) is None else pieces
+    return pieces
 
 
 def draw_task(
