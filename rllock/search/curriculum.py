@@ -83,7 +83,7 @@ def edge_pieces(pieces: int, solved: bool, task: Task) -> int:
     `pieces` that `solved` or not: the next K up after a solve, down after a failure, at which the last
     piece is under twice the others (`tight`: the hardest K of the next piece size, smaller or larger);
     within [K/2, N/4] (pieces of at least 4 voxels, unless the cell asked for smaller ones), passing over a
-    K a proof rules out (spider: K = 20-40); K stays when there is none (the beetle at resolution 24
+    K a proof rules out (spider: K = 20-42); K stays when there is none (the beetle at resolution 24
     above K = 66: its two antenna tips)."""
     low, high = max(2, task.pieces // 2), max(task.pieces, task.size // 4)
     step = 1 if solved else -1
