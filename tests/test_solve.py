@@ -46,6 +46,7 @@ def test_solve_command_writes_verified_files(tmp_path):
         "solve", "--shape", "cube4", "--pieces", "7", "--count", "2", "--seed", "5", "--out", str(tmp_path)
     )
     assert code == 0 and "per valid assembly" in out
+    assert "smallest last piece" not in err  # K = 7 on 64 voxels: pieces of 9, the last of 10
     folders = sorted(tmp_path.glob("assembly_*"))
     assert len(folders) == 2
     for folder in folders:
@@ -56,6 +57,13 @@ def test_solve_command_writes_verified_files(tmp_path):
         assert np.array_equal(labels, read_puz_labels(folder / "assembly.puz"))
         assert "verified valid" in (folder / "assembly.puz").read_text()
         assert run_cli("verify", str(folder / "assembly.puz"))[0] == 0
+
+
+def test_solve_says_when_the_last_piece_takes_many_spare_voxels_and_which_k_does_not(tmp_path):
+    code, _, err = run_cli("solve", "--shape", "cube6", "--pieces", "20", "--out", str(tmp_path / "o"))
+    assert code == 0
+    assert "K=20 on 216 voxels: pieces of 10 and a last piece of 26" in err, err
+    assert "K=21 gives pieces of 10 and the smallest last piece (16)" in err, err
 
 
 def test_invalid_assemblies_are_never_written(tmp_path):

@@ -77,7 +77,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_solve(args: argparse.Namespace) -> int:
-    from rllock.core.env import make_task
+    from rllock.core.env import make_task, tight
     from rllock.core.feasibility import check_feasible
     from rllock.search.solver import SearchStats
 
@@ -93,6 +93,19 @@ def cmd_solve(args: argparse.Namespace) -> int:
         )
     task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
     check_feasible(task)
+    if not tight(task.size, task.pieces):
+        n = task.piece_size
+        log.info(
+            "K=%d on %d voxels: pieces of %d and a last piece of %d, which makes the task easier; "
+            "K=%d gives pieces of %d and the smallest last piece (%d)",
+            task.pieces,
+            task.size,
+            n,
+            task.last_size,
+            task.size // n,
+            n,
+            task.size - (task.size // n - 1) * n,
+        )
     guide = None
     if args.guide is not None:
         from rllock.search.guide_checkpoint import load_guide

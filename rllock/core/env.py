@@ -36,6 +36,19 @@ class Task:
         """n = floor(N / K): the size of P1..P(K-1)."""
         return self.size // self.pieces
 
+    @property
+    def last_size(self) -> int:
+        """The last piece's size, N - (K-1)n: from n to n + K - 1."""
+        return self.size - (self.pieces - 1) * self.piece_size
+
+
+def tight(size: int, pieces: int) -> bool:
+    """Whether K = `pieces` on `size` voxels leaves the last piece under twice the others (N mod K < N // K):
+    the one such K of each piece size n is N // n, the hardest of the K that give pieces of n voxels, as
+    the last piece takes what the others leave (mario, N = 548: a last piece of 17 at K = 60, of 68 at
+    K = 61, of 20 at K = 67 and of 12 at K = 68)."""
+    return size % pieces < size // pieces
+
 
 @dataclass(frozen=True, eq=False)
 class State:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rllock.config import GuideTrainConfig
-from rllock.core.env import Task, make_task
+from rllock.core.env import Task, make_task, tight
 from rllock.core.feasibility import check_feasible, impossibility
 from rllock.core.shapes import crop, load_shape
 from rllock.errors import RLLockError
@@ -68,14 +68,6 @@ def named_tasks(spec: str) -> list[Task]:
     for task in tasks:
         check_feasible(task)
     return tasks
-
-
-def tight(size: int, pieces: int) -> bool:
-    """Whether K = `pieces` on `size` voxels leaves the last piece under twice the others (N mod K < N // K):
-    the one such K of each piece size n is N // n, the hardest of the K that give pieces of n voxels, as
-    the last piece takes what the others leave (mario, N = 548: a last piece of 17 at K = 60, of 68 at
-    K = 61, of 20 at K = 67 and of 12 at K = 68)."""
-    return size % pieces < size // pieces
 
 
 def edge_pieces(pieces: int, solved: bool, task: Task) -> int:
