@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import random
 import shutil
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -252,12 +253,22 @@ def _parsers(parser: argparse.ArgumentParser, name: str = "rllock"):
                 yield from _parsers(sub, f"{name} {command}")
 
 
+@dataclass(frozen=True)
+class _Shares:
+    share: float = 0.5
+    """at most 50% of the restarts"""
+
+
 def test_every_commands_help_prints_with_its_flags_docs_as_written():
     """argparse formats help strings with %: a config docstring's "2%" broke `train-guide --help`."""
+    from orchestration.cli.flags import add_flags
     from orchestration.cli.main import build_parser
 
     helps = {name: parser.format_help() for name, parser in _parsers(build_parser())}
     assert {"rllock solve", "rllock train-guide", "rllock bench guide"} <= set(helps)
-    assert "up (smaller pieces) after a solve and down after a failure, by 2%" in " ".join(
+    assert "the next K whose last piece is under twice the others" in " ".join(
         helps["rllock train-guide"].split()
     )
+    parser = argparse.ArgumentParser()
+    add_flags(parser, _Shares)
+    assert "at most 50% of the restarts" in parser.format_help()
