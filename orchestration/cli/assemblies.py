@@ -12,7 +12,7 @@ import json
 import logging
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +95,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     check_feasible(task)
     if not tight(task.size, task.pieces):
         n = task.piece_size
+        smallest = replace(task, pieces=task.size // n)
         log.info(
             "K=%d on %d voxels: pieces of %d and a last piece of %d, which makes the task easier; "
             "K=%d gives pieces of %d and the smallest last piece (%d)",
@@ -102,9 +103,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
             task.size,
             n,
             task.last_size,
-            task.size // n,
+            smallest.pieces,
             n,
-            task.size - (task.size // n - 1) * n,
+            smallest.last_size,
         )
     guide = None
     if args.guide is not None:

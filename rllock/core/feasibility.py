@@ -33,6 +33,7 @@ checkers.
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -62,14 +63,14 @@ def impossibility(task: Task) -> str | None:
             "straight removal the others cannot hold a single-voxel piece: "
             f"use K <= {task.size // 2} or --removal path"
         )
-    unheld = _strands_unheld(task.topology, task.pieces)
+    unheld = _strands_unheld(task)
     if unheld:
         corner = tuple(int(c) for c in task.topology.coords[unheld[0]])
         fewer = next(
             (
                 k
                 for k in range(task.pieces - 1, max(2, task.pieces - 50), -1)
-                if not _strands_unheld(task.topology, k)
+                if not _strands_unheld(replace(task, pieces=k))
             ),
             None,
         )
@@ -82,9 +83,8 @@ def impossibility(task: Task) -> str | None:
     return None
 
 
-def _strands_unheld(topology: Topology, pieces: int) -> list[int]:
-    n = topology.size // pieces
-    return _unheld_tips(topology, n, topology.size - (pieces - 1) * n)
+def _strands_unheld(task: Task) -> list[int]:
+    return _unheld_tips(task.topology, task.piece_size, task.last_size)
 
 
 HELD_BUDGET = 20_000  # sets enumerated per voxel; past it the voxel counts as held (no proof from it)
@@ -166,13 +166,13 @@ def _steps_from(nbr: np.ndarray, source: int) -> np.ndarray:
 def _strand_length(nbr: np.ndarray, tip: int) -> int:
     """How many voxels the strand from `tip` has: it and the voxels of two neighbours that follow, up to
     the first voxel with three or more; 1 (no bound from it) when the shape is one strand end to end."""
-    degree = (nbr >= 0).sum(axis=1)
     previous, v, length = -1, tip, 1
     while True:
         (following,) = [int(u) for u in nbr[v] if u >= 0 and u != previous][:1] or [-1]
-        if following < 0 or degree[following] == 1:
+        degree = int((nbr[following] >= 0).sum()) if following >= 0 else 0
+        if degree <= 1:
             return 1
-        if degree[following] > 2:
+        if degree > 2:
             return length
         previous, v, length = v, following, length + 1
 
