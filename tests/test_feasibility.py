@@ -217,3 +217,5 @@ def test_spider_k20_and_k30_have_no_assembly_its_legs_only_the_key_and_last_piec
     assert all(impossibility(make_task("spider", k)) is None for k in (15, 16, 19))
     code, _, err = run_cli("solve", "--shape", "spider", "--pieces", "20", "--out", "/nonexistent/never")
     assert code == 2 and len(err.strip().splitlines()) == 1 and "n = 10 voxels" in err, err
+    # The advice names the largest K below that no proof refuses (19 has no proof, above).
+    assert "the largest smaller K it leaves open is 19" in err, err

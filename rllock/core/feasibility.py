@@ -66,21 +66,26 @@ def impossibility(task: Task) -> str | None:
     unheld = _strands_unheld(task)
     if unheld:
         corner = tuple(int(c) for c in task.topology.coords[unheld[0]])
-        fewer = next(
-            (
-                k
-                for k in range(task.pieces - 1, max(2, task.pieces - 50), -1)
-                if not _strands_unheld(replace(task, pieces=k))
-            ),
-            None,
-        )
         return (
             f"{len(unheld)} voxels at the tips of thin strands (one at {corner}) cannot be held in place by "
             f"any piece of n = {task.piece_size} voxels, so only the key and the last piece could take them, "
             "and those two cannot take them all: use fewer, larger pieces"
-            + (f" (the largest smaller K it leaves open is {fewer})" if fewer else "")
         )
     return None
+
+
+def _largest_open_below(task: Task, span: int = 50) -> int | None:
+    """The largest K below `task.pieces` (at most `span` below) that the strands proof leaves open, for
+    the advice of a refusal: asked only where a message is shown, as it runs the proof up to `span`
+    times."""
+    return next(
+        (
+            k
+            for k in range(task.pieces - 1, max(2, task.pieces - span), -1)
+            if not _strands_unheld(replace(task, pieces=k))
+        ),
+        None,
+    )
 
 
 def _strands_unheld(task: Task) -> list[int]:
@@ -210,8 +215,11 @@ def _split_exists(steps: np.ndarray, strands: list[int], n: int, last: int, key_
 def check_feasible(task: Task) -> None:
     """Raise a one-line error when `task` provably has no valid assembly (`impossibility`)."""
     reason = impossibility(task)
-    if reason is not None:
-        raise RLLockError(
-            f"{task.shape_name} K={task.pieces} ({task.removal} removal) cannot have a valid assembly: "
-            + reason
-        )
+    if reason is None:
+        return
+    fewer = _largest_open_below(task) if _strands_unheld(task) else None
+    raise RLLockError(
+        f"{task.shape_name} K={task.pieces} ({task.removal} removal) cannot have a valid assembly: "
+        + reason
+        + (f" (the largest smaller K it leaves open is {fewer})" if fewer else "")
+    )
