@@ -316,8 +316,9 @@ GUIDED_SEARCHES = ("dives", "orders")
 class GuideTrainConfig:
     """`rllock train-guide`: Ray actors run the search solver on a curriculum of random shapes, shipped
     shapes and K, every other search guided by the latest network; the children of a few states each
-    search finished, labelled by rollouts (the share of plain searches from a child that reach an
-    assembly), train the guide network (`rllock.search.guide`)."""
+    search finished, labelled by rollouts (the share of the pieces left that plain searches from a child
+    place), train the guide network (`rllock.search.guide`). The defaults of the labels and the learner
+    are those every kept run and shipped guide was made with (data/replay/*.json)."""
 
     minutes: float = 10.0
     """Wall-clock budget, a hard limit (on resume: the time to add)."""
@@ -340,12 +341,12 @@ class GuideTrainConfig:
     """The fewest pieces left at a probed state."""
     max_left: int = 20
     """The most pieces left at a probed state: where searches fail, the last pieces."""
-    rollouts: int = 3
+    rollouts: int = 2
     """Plain searches from each child of a probed state; its value target is the share that reach an
     assembly."""
-    rollout_expansions: int = 512
+    rollout_expansions: int = 256
     """Node expansions of one rollout (a few Luby restarts)."""
-    label: str = "won"
+    label: str = "reach"
     """A child's value target: "won", the share of its rollouts that reach an assembly; "reach", the
     share of the pieces left that they place (an assembly 1), which still tells siblings apart where
     every rollout fails."""
@@ -384,7 +385,7 @@ class GuideTrainConfig:
     (docs/benchmarks.md)."""
     buffer_capacity: int = 200_000
     """States kept; the oldest are overwritten."""
-    batch_size: int = 256
+    batch_size: int = 128
     """States per learner step."""
     guide_learning_rate: float = 1e-3
     """Adam's learning rate."""
@@ -392,8 +393,9 @@ class GuideTrainConfig:
     """With a decay in (0, 1), e.g. 0.99: the actors, the held-out judgement and the checkpoints' guide
     use an exponential moving average of the learner's weights (the learner steps on its own), which
     moves less from one checkpoint to the next than the last step's weights do. 0: the last weights."""
-    replay_ratio: float = 8.0
-    """At most this many sampled states per state the searches produced."""
+    replay_ratio: float = 100.0
+    """At most this many sampled states per state the searches produced: labels are dear (rollouts of
+    every child) and few, so each is learned from many times."""
     publish_every: int = 50
     """Learner steps between weight versions handed to the actors."""
     checkpoint_minutes: float = 2.0

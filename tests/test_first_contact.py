@@ -106,7 +106,9 @@ def test_a_failed_solve_says_what_it_reached_and_what_to_try(tmp_path):
     assert (
         0 < placed < 79 and f"chunks sampled for piece {placed + 1}" in best and "fail connectivity" in best
     )
-    assert "more time (--time-limit 24)" in tries and "K=79 or K=81" in tries and "--removal path" in tries
+    # N = 966: K = 79 keeps pieces of 12 (the last 966 - 78 * 12), K = 81 makes them 11 (966 - 80 * 11).
+    assert "K=79 (pieces of 12, the last 30) or K=81 (pieces of 11, the last 86)" in tries, tries
+    assert "more time (--time-limit 24)" in tries and "--removal path" in tries
 
 
 def test_a_bad_out_fails_before_any_work(tmp_path):
