@@ -342,8 +342,7 @@ class GuideTrainConfig:
     max_left: int = 20
     """The most pieces left at a probed state: where searches fail, the last pieces."""
     rollouts: int = 2
-    """Plain searches from each child of a probed state; its value target is the share that reach an
-    assembly."""
+    """Plain searches from each child of a probed state; its value target is made from theirs (`label`)."""
     rollout_expansions: int = 256
     """Node expansions of one rollout (a few Luby restarts)."""
     label: str = "reach"
