@@ -7,6 +7,7 @@ import logging
 import signal
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 
 from rllock.core.env import Task
 
@@ -63,7 +64,9 @@ def general_serves(task: Task) -> bool:
 
 def advice(task: Task, *, fits_general: bool, more: str) -> str:
     """What to try after a search found nothing: `more` names the budget that can grow."""
-    others = [_pieces_at(task.size, k) for k in (task.pieces - 1, task.pieces + 1) if 2 <= k <= task.size]
+    others = [
+        _sizes(replace(task, pieces=k)) for k in (task.pieces - 1, task.pieces + 1) if 2 <= k <= task.size
+    ]
     tries = [more, f"another K, {' or '.join(others)}: a last piece well over the others is easier"]
     if task.removal == "straight":
         tries.append("--removal path (a weaker test: pieces may leave by several moves)")
@@ -72,8 +75,7 @@ def advice(task: Task, *, fits_general: bool, more: str) -> str:
     return "try " + "; ".join(tries)
 
 
-def _pieces_at(size: int, pieces: int) -> str:
-    """K = `pieces` on `size` voxels with the sizes it gives: one K more or fewer can change the pieces'
-    size and move the last piece's by many voxels (desia-bunny: K=80 has a last piece of 18, K=81 of 86)."""
-    n = size // pieces
-    return f"K={pieces} (pieces of {n}, the last {size - (pieces - 1) * n})"
+def _sizes(task: Task) -> str:
+    """K with the sizes it gives: one K more or fewer can change the pieces' size and move the last
+    piece's by many voxels (desia-bunny: K=80 has a last piece of 18, K=81 of 86)."""
+    return f"K={task.pieces} (pieces of {task.piece_size}, the last {task.last_size})"
