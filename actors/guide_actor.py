@@ -28,8 +28,10 @@ from rllock.core.env import State, Task
 from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts, derive_seed
 from rllock.search.curriculum import draw_task, named_tasks
+from rllock.search.dfs import SearchStats, expand
 from rllock.search.guide import GLOBALS, Guide, channels, encode
-from rllock.search.solver import SearchConfig, SearchStats, expand, rollout_reach, search
+from rllock.search.restarts import rollout_reach
+from rllock.search.solver import search
 
 # States kept per probe wanted: most states a failing search leaves are dead ends (no child to label),
 # and without spares its probes were mostly those, so that the searches that fail, where labels matter
@@ -133,12 +135,6 @@ def value_target(labelled: Labelled, label: str) -> np.ndarray:
     return labelled.target if label == "won" else labelled.reach.mean(axis=1)
 
 
-def search_config(config: GuideTrainConfig, guided: bool) -> SearchConfig:
-    """The search an actor runs: with a guide, as `GuideTrainConfig.guided_search` says."""
-    orders = guided and config.guided_search == "orders"
-    return SearchConfig(guide_orders=True, dives=1) if orders else SearchConfig()
-
-
 def run_search(
     config: GuideTrainConfig,
     seed: int,
@@ -158,7 +154,6 @@ def run_search(
         task,
         seed=derive_seed(seed, number),
         time_limit=config.search_seconds,
-        config=search_config(config, guide is not None),
         stats=stats,
         guide=guide,
         record=probes,

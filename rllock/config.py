@@ -309,7 +309,6 @@ class GuideConfig:
 
 
 GUIDE_LABELS = ("won", "reach")
-GUIDED_SEARCHES = ("dives", "orders")
 
 
 @dataclass(frozen=True)
@@ -354,12 +353,6 @@ class GuideTrainConfig:
     network learns to order the children of one node, which is what the search asks of it. Off by
     default: on what 30 minutes on 2 cores label, it overfits sooner than the value loss alone, and
     neither orders held-out siblings better than chance (docs/benchmarks.md)."""
-    guided_search: str = "dives"
-    """How the actors' guided searches (every other search) use the latest guide: "dives", as `rllock
-    solve --guide` does (`SearchConfig.dives`); "orders", its values order and prune every node's
-    children within its horizon and there are no dives (`SearchConfig.guide_orders`), as the first
-    guide taught mario was trained. Trained so again, a guide solved mario K=60 no more often than one
-    whose actors dive or the untrained network (docs/benchmarks.md, "Which search the actors run")."""
     min_voxels: int = 100
     """The curriculum's smallest random shape."""
     max_voxels: int = 2000
@@ -432,10 +425,6 @@ class GuideTrainConfig:
             raise RLLockError(f"--actors must be >= 0, got {self.actors}")
         if self.label not in GUIDE_LABELS:
             raise RLLockError(f"--label must be one of {', '.join(GUIDE_LABELS)}, got {self.label!r}")
-        if self.guided_search not in GUIDED_SEARCHES:
-            raise RLLockError(
-                f"--guided-search must be one of {', '.join(GUIDED_SEARCHES)}, got {self.guided_search!r}"
-            )
         if not 8 <= self.min_voxels <= self.max_voxels:
             raise RLLockError("--min-voxels must be at least 8 and at most --max-voxels")
         if not 1 <= self.min_left <= self.max_left:

@@ -212,7 +212,7 @@ def test_every_check_agrees_with_the_reference_with_hundreds_of_pieces(removal):
     states with 50 to 190 of 200 pieces placed on a 1,440-voxel box (prefixes of one search's path),
     raw chunks from the reference sampler and accepted ones from the compiled sampler."""
     from rllock.core.env import State
-    from rllock.search.solver import reach_depth
+    from rllock.search.restarts import reach_depth
 
     task = make_task("box:12x12x10", 200, removal)
     deep = reach_depth(task, 190, seed=1, time_limit=60)

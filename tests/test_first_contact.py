@@ -143,11 +143,11 @@ def test_a_folder_is_written_whole_or_not_at_all(tmp_path):
 
 
 def test_the_search_reports_its_progress_while_it_runs(monkeypatch):
-    from rllock.search import solver
+    from rllock.search import dfs, solver
 
-    monkeypatch.setattr(solver, "PROGRESS_EVERY", 0.0)
+    monkeypatch.setattr(dfs, "PROGRESS_EVERY", 0.0)
     seen: list[tuple[int, int, int]] = []
-    stats = solver.SearchStats()
+    stats = dfs.SearchStats()
     task = make_task("desia-bunny", 80)  # DESIA's count: straight removal finds none in seconds
     found = solver.search(
         task,

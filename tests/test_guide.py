@@ -40,24 +40,13 @@ from rllock.files import orbax_io
 from rllock.files.checkpoint import saved_steps
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task, edge_pieces, named_tasks
+from rllock.search.dfs import SearchStats, dfs, expand
+from rllock.search.dives import RestartSequence, best_dive, dive_allowance
 from rllock.search.guide import CHANNELS, GLOBALS, Guide, channels, encode, guide_values, init_guide
 from rllock.search.guide_checkpoint import guide_metadata, load_guide, read_guide_metadata
-from rllock.search.solver import (
-    Child,
-    SearchConfig,
-    SearchStats,
-    _backjump,
-    _best_dive,
-    _dfs,
-    _guided,
-    _Sequence,
-    dive_allowance,
-    expand,
-    luby,
-    rollout_reach,
-    search,
-    solve,
-)
+from rllock.search.restarts import luby, rollout_reach
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import search, solve
 
 CONFIG = GuideConfig(window=8, guide_features=(4, 8), guide_hidden=16)
 
@@ -276,36 +265,15 @@ def test_labelling_skips_dead_ends_and_stops_at_the_probes_wanted():
     assert labelled.group.tolist() == [1] * counts[0] + [3] * counts[1]
 
 
-def test_an_actors_guided_search_dives_or_values_every_nodes_children_as_configured():
+def test_an_actors_guided_search_dives_and_asks_the_guide_nothing_before_its_dives():
     # cube5 K=13 is solved by the first restart, which is the solver's: a diving search asks the guide
-    # nothing, one that orders values the children of each node within the horizon (6) on its way.
+    # nothing, and labels what the unguided search labels.
     task = make_task("cube5", 13)
-    runs = {}
-    for guided_search in ("dives", "orders"):
-        config = GuideTrainConfig(
-            guide=CONFIG, guided_search=guided_search, rollouts=1, rollout_expansions=5, probes=1, max_left=6
-        )
-        guide = _Counted(replace(_untrained(), horizon=6))
-        _, solved, placed, _ = run_search(config, 0, 0, guide, [task])  # type: ignore[arg-type]
-        assert solved and placed == task.pieces - 1
-        runs[guided_search] = guide.calls, run_search(config, 0, 0, None, [task])[0]
-    assert runs["dives"][0] == [] and len(runs["orders"][0]) >= 7 and max(runs["orders"][0]) <= 8
-    np.testing.assert_array_equal(runs["dives"][1].window, runs["orders"][1].window)  # unguided: the same
-    with pytest.raises(RLLockError, match="--guided-search"):
-        GuideTrainConfig(guided_search="rollouts").validate()
-
-
-def test_a_guided_search_finds_verified_assemblies_and_never_prunes_a_node_bare():
-    task = make_task("cube4", 7)
-    # A guide that judges everything hopeless: pruning must still keep each node's best child.
-    params = dict(jax.tree.map(np.asarray, _untrained().params))
-    params["Dense_2"] = {"kernel": np.zeros_like(params["Dense_2"]["kernel"]), "bias": np.full(1, -10.0)}
-    hopeless = Guide(CONFIG, params, "hopeless")
-    assert (hopeless.values(task, [initial_state(task)], [1.0]) < 0.02).all()
-    orders = SearchConfig(guide_orders=True)
-    for guide in (_untrained(), hopeless):
-        found = solve(task, count=1, time_limit=120, seed=0, guide=guide, config=orders)
-        assert len(found) == 1 and verify_labels(found[0], task.removal).valid
+    config = GuideTrainConfig(guide=CONFIG, rollouts=1, rollout_expansions=5, probes=1, max_left=6)
+    guide = _Counted(replace(_untrained(), horizon=6))
+    guided, solved, placed, _ = run_search(config, 0, 0, guide, [task])  # type: ignore[arg-type]
+    assert solved and placed == task.pieces - 1 and guide.calls == []
+    np.testing.assert_array_equal(guided.window, run_search(config, 0, 0, None, [task])[0].window)
 
 
 def _constant(value: float) -> Guide:
@@ -316,37 +284,15 @@ def _constant(value: float) -> Guide:
     return Guide(CONFIG, params, f"constant {value}")
 
 
-def test_a_node_whose_children_all_value_below_abandon_below_is_abandoned():
-    task = make_task("cube4", 7)
-    low, high = _constant(0.1), _constant(0.3)
-    assert np.allclose(low.values(task, [initial_state(task)], [1.0]), 0.1, atol=1e-3)
-    abandon = SearchConfig(abandon_below=0.2)
-    stats = SearchStats()
-    assert next(search(task, seed=0, time_limit=2, config=abandon, guide=low, stats=stats), None) is None
-    # every node within the horizon abandoned: each restart ends where the guide first judges
-    assert stats.placed < task.pieces - 1 and stats.restarts > 10
-    found = solve(task, count=1, time_limit=120, seed=0, guide=high, config=abandon)
-    assert len(found) == 1 and verify_labels(found[0], task.removal).valid  # above it: searched as before
-    plain = solve(task, count=1, time_limit=120, seed=0, guide=high)
-    assert np.array_equal(found[0], plain[0])
-
-
 def test_a_guide_that_keeps_the_search_order_searches_as_the_solver_does():
     task = make_task("cube5", 13)
     keep = SearchConfig()  # K = 13: no dive state 20 pieces before the end, so nothing for the guide
-    # A constant value: the expected shortfall (1 - v) x pieces left never grows, so it never backjumps.
-    level = replace(keep, backjump=0.5)
     runs = []
-    for guide, config in ((None, SearchConfig()), (_constant(0.3), level), (_untrained(), keep)):
+    for guide, config in ((None, SearchConfig()), (_constant(0.3), keep), (_untrained(), keep)):
         stats = SearchStats()
         found = next(search(task, seed=1, time_limit=120, guide=guide, config=config, stats=stats))
         runs.append((found.labels.tobytes(), found.expansions, stats.restarts))
     assert runs[0] == runs[1] == runs[2]
-    # The untrained guide's own order is another search.
-    ordered = next(
-        search(task, seed=1, time_limit=120, guide=_untrained(), config=SearchConfig(guide_orders=True))
-    )
-    assert (ordered.labels.tobytes(), ordered.expansions) != runs[0][:2]
 
 
 def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_before():
@@ -358,7 +304,7 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
     rng = np.random.default_rng(7)
     begun = []
     for _ in range(3):
-        begin, used = _best_dive(
+        begin, used = best_dive(
             task, rng, config, 10_000, deadline, stats, lambda: False, None, guide, None, kept
         )
         begun.append((begin, used))
@@ -367,7 +313,7 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
     for begin, used in begun:
         spent = 0
         for _ in range(4):
-            state, n = _dfs(task, again, config, 10_000, deadline, 13 - 1 - 5, SearchStats())
+            state, n = dfs(task, again, config, 10_000, deadline, 13 - 1 - 5, SearchStats())
             left += [] if state is None else [state]  # a dive can fail: the others still count
             spent += n
         values = guide.values(task, left, [1.0] * len(left))
@@ -377,7 +323,7 @@ def test_a_restart_goes_on_from_the_best_valued_of_its_dives_and_those_left_befo
     assert len(kept) == len(left)
     # One dive, or none within the horizon: the restart begins at the root, as the solver's does.
     for cfg, g in ((SearchConfig(dives=1), guide), (config, replace(guide, horizon=12)), (config, None)):
-        assert _best_dive(task, rng, cfg, 100, deadline, stats, lambda: False, None, g, None, []) == (None, 0)
+        assert best_dive(task, rng, cfg, 100, deadline, stats, lambda: False, None, g, None, []) == (None, 0)
     # In a search, assemblies found below a dive are whole and valid.
     for found in solve(task, count=3, time_limit=120, seed=4, guide=guide, config=config):
         assert verify_labels(found, task.removal).valid
@@ -391,7 +337,7 @@ def test_the_dives_share_grows_past_its_units_in_proportion_to_the_solvers_expan
 
 
 def test_a_diving_restart_is_planned_with_its_dives_as_they_took_so_far():
-    sequence = _Sequence(np.random.default_rng(0))
+    sequence = RestartSequence(np.random.default_rng(0))
     assert sequence.planned(100, 40) == 100 + 40  # before any dive: one expansion a piece
     sequence.restarts, sequence.ran, sequence.dived = 2, 2, 3000
     assert sequence.planned(100, 40) == 100 * luby(3) + 1500
@@ -437,7 +383,7 @@ class _Counted:
         return self.guide.values(task, states, shares)
 
 
-def _six_restarts(task, config: SearchConfig) -> tuple[list, SearchStats, list[int]]:
+def _sixrestart_until(task, config: SearchConfig) -> tuple[list, SearchStats, list[int]]:
     """A search with an untrained guide (horizon 6) stopped as its sixth restart begins: the
     assemblies found, its stats and the sizes of its calls to the guide."""
     guide, stats = _Counted(replace(_untrained(), horizon=6)), SearchStats()
@@ -449,72 +395,9 @@ def _six_restarts(task, config: SearchConfig) -> tuple[list, SearchStats, list[i
 
 def test_a_guide_that_keeps_the_order_and_dives_values_only_the_dive_states():
     task = make_task("desia-dog", 60)
-    dives = SearchConfig(dives=3, dive_share=10.0)
-    for config, only_dives in ((dives, True), (replace(dives, backjump=2.0), False)):
-        found, stats, calls = _six_restarts(task, config)
-        assert not found and stats.restarts == 6
-        if only_dives:  # one call per diving restart, of at most its dives
-            assert len(calls) == stats.dives >= 3 and max(calls) <= 3
-        else:  # to backjump, every node's children within the horizon are valued
-            assert len(calls) > stats.restarts
-
-
-def test_demoting_puts_off_the_children_valued_clearly_below_the_best_and_keeps_each_parts_order():
-    task = make_task("cube4", 6)
-    kids = [Child(State(initial_state(task).labels, 1), None, share) for share in (0.1, 0.2, 0.3, 0.4, 0.5)]
-
-    class Valued:
-        horizon = 20
-
-        def values(self, task, states, shares):
-            return np.array([0.9, 0.2, 0.7, 0.85, 0.1], np.float32)
-
-    def order(demote_by: float) -> list[float]:
-        config = SearchConfig(demote_by=demote_by)
-        return [c.share for c in _guided(task, kids, Valued(), config)]
-
-    # Pop order, best last: the demoted (valued 0.2 and 0.1) first, each part as the search had it.
-    assert order(0.25) == [0.2, 0.5, 0.1, 0.3, 0.4]
-    assert order(0.9) == [0.1, 0.2, 0.3, 0.4, 0.5]  # none clearly worse: the search's own order
-
-
-def _path(values: list[float | None], target: int = 20) -> list[Child]:
-    """A root and a child per value, one piece each, the last the child whose subtree failed."""
-    task = make_task("cube4", target + 1)
-    state, path = initial_state(task), [Child(initial_state(task), None, 1.0)]
-    for v in values:
-        state = State(state.labels, state.placed + 1)
-        path.append(Child(state, None, 0.0, v))
-    return path
-
-
-def _reference_backjump(path: list[Child], least: float, target: int) -> int:
-    """Levels kept: the root up to the child whose step grew the expected shortfall most (by at least
-    `least` pieces), or all but the failed child."""
-    grew = {
-        i: (1 - path[i].value) * (target - i) - (1 - path[i - 1].value) * (target - i + 1)
-        for i in range(1, len(path))
-        if path[i].value is not None and path[i - 1].value is not None
-    }
-    best = max(grew.values(), default=-1.0)
-    if best < least:
-        return len(path) - 1
-    return max(i for i, g in grew.items() if g == best)
-
-
-def test_a_failed_subtree_backjumps_past_the_step_where_the_expected_shortfall_grew_most():
-    # shortfall (1 - v) x left: 19 x 0.1 = 1.9, 18 x 0.1 = 1.8, 17 x 0.5 = 8.5 (grew 6.7), 16 x 0.6 = 9.6
-    path = _path([0.9, 0.9, 0.5, 0.4])
-    assert _backjump(path, 2.0, 20) == 3  # path[3] and below are dropped: its siblings come next
-    assert _backjump(path, 7.0, 20) == 4  # not grown enough anywhere: one step back
-    assert _backjump(path, None, 20) == 4
-    assert _backjump(_path([None, None, 0.9, 0.1]), 2.0, 20) == 4  # the last step grew most: one step
-    rng = np.random.default_rng(0)
-    for _ in range(200):
-        size = int(rng.integers(1, 12))
-        values = [None if rng.random() < 0.2 else float(rng.random()) for _ in range(size)]
-        path, least = _path(values), float(rng.uniform(0, 5))
-        assert _backjump(path, least, 20) == _reference_backjump(path, least, 20), (values, least)
+    found, stats, calls = _sixrestart_until(task, SearchConfig(dives=3, dive_share=10.0))
+    assert not found and stats.restarts == 6
+    assert len(calls) == stats.dives >= 3 and max(calls) <= 3  # one call per diving restart
 
 
 def test_the_curriculum_draws_feasible_varied_tasks():
@@ -1002,9 +885,7 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
     config = GuideTrainConfig(guide=CONFIG)
     _save_guide(tmp_path / "run", GuideLearner(CONFIG, 1e-3, jax.random.PRNGKey(2)), config)
     bench = ["bench", "guide", "--guide", str(tmp_path / "run"), "--seeds", "0,1", "--time-limit", "30"]
-    code, out, err = run_cli(
-        *bench, "--cells", "cube4:6", "--backjump", "2", "--untrained-seed", "3", "--json"
-    )
+    code, out, err = run_cli(*bench, "--cells", "cube4:6", "--dives", "2", "--untrained-seed", "3", "--json")
     assert code == 0, err
     doc = json.loads(out)
     (row,) = doc["rows"]

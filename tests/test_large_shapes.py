@@ -20,7 +20,9 @@ from rllock.core import compiled_sampler as sampler
 from rllock.core import reference_checkers as ref
 from rllock.core.env import initial_state, make_task, sample_accepted, tightest_subset
 from rllock.core.verifier import verify_labels
-from rllock.search.solver import SearchConfig, expand, search, solve
+from rllock.search.dfs import expand
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import search, solve
 
 
 def _cells(task, voxels) -> frozenset[ref.Voxel]:

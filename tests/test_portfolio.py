@@ -19,9 +19,11 @@ from helpers import actor_nodes, run_cli
 from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
 from rllock.files.assembly import read_assembly
-from rllock.search import portfolio, solver
+from rllock.search import dfs, portfolio
+from rllock.search.dfs import SamplingPool, SearchStats
 from rllock.search.portfolio import portfolio_search, shares_cores, worker_seed
-from rllock.search.solver import SamplingPool, SearchStats, search
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import search
 
 
 def test_workers_find_distinct_verified_assemblies_each_found_again_by_its_seed():
@@ -64,15 +66,15 @@ def test_workers_stop_at_the_time_limit_with_their_progress_summed(monkeypatch):
 )
 def test_the_lookahead_on_threads_is_the_same_search_node_for_node(shape, pieces, removal, monkeypatch):
     task = make_task(shape, pieces, removal)
-    monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)  # threads from the first node, however fast
+    monkeypatch.setattr(dfs, "THREADED_FROM_SECONDS", 0.0)  # threads from the first node, however fast
     sampled_on: set[str] = set()
-    sample = solver.sample_accepted
+    sample = dfs.sample_accepted
 
     def watched(*args, **kwargs):
         sampled_on.add(threading.current_thread().name)
         return sample(*args, **kwargs)
 
-    monkeypatch.setattr(solver, "sample_accepted", watched)
+    monkeypatch.setattr(dfs, "sample_accepted", watched)
     runs = []
     pool = SamplingPool.start(3)
     try:
@@ -148,15 +150,15 @@ def test_a_lent_worker_is_started_only_once_worker_0_gives_its_core_back(monkeyp
     monkeypatch.setattr(portfolio, "BALANCE_EVERY_SECONDS", 0.1)
     monkeypatch.setattr(portfolio, "KEEP_WHILE_BUSY", 0.0)
     monkeypatch.setattr(portfolio, "JUDGE_AFTER_SECONDS", 0.0)
-    monkeypatch.setattr(solver, "THREADED_FROM_SECONDS", 0.0)
+    monkeypatch.setattr(dfs, "THREADED_FROM_SECONDS", 0.0)
     sampled_on: list[tuple[float, str]] = []
-    sample = solver.sample_accepted
+    sample = dfs.sample_accepted
 
     def watched(*args, **kwargs):
         sampled_on.append((time.monotonic(), threading.current_thread().name))
         return sample(*args, **kwargs)
 
-    monkeypatch.setattr(solver, "sample_accepted", watched)
+    monkeypatch.setattr(dfs, "sample_accepted", watched)
     started = time.monotonic()
     moments: dict[str, float] = {}
     seen: list[tuple[float, list[int]]] = []
@@ -305,7 +307,7 @@ def test_worker_0_judges_its_threads_from_the_end_of_their_first_sample(monkeypa
     """The first sample loads the compiled sampler: the time before its end does not count. The lent
     worker starts only when the cores go apart."""
     task = make_task("cube4", 7)
-    jobs = [(task, s, 10.0, solver.SearchConfig(), None, i, None) for i, s in enumerate((0, 1))]
+    jobs = [(task, s, 10.0, SearchConfig(), None, i, None) for i, s in enumerate((0, 1))]
     crew = portfolio._LocalCrew(jobs, children=8)
     clock = [1000.0]
     monkeypatch.setattr(portfolio.time, "monotonic", lambda: clock[0])

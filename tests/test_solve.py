@@ -10,7 +10,8 @@ from rllock.core.env import make_task
 from rllock.core.shapes import read_puz_labels
 from rllock.core.verifier import verify_labels
 from rllock.files.assembly import read_assembly, write_assembly
-from rllock.search.solver import luby, search
+from rllock.search.restarts import luby
+from rllock.search.solver import search
 
 
 def test_luby_sequence():

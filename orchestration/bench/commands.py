@@ -81,33 +81,6 @@ def _add_guide(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     p.add_argument("--time-limit", type=positive_float, default=60.0, help="seconds per arm and seed")
     p.add_argument(
-        "--abandon-below",
-        type=float,
-        default=None,
-        help="the guided arms abandon a node whose children all value below this (default: the "
-        "search's own, SearchConfig.abandon_below)",
-    )
-    p.add_argument(
-        "--backjump",
-        type=positive_float,
-        default=None,
-        help="the guided arms backtrack past the step where the expected shortfall grew by at least this "
-        "many pieces (SearchConfig.backjump; default: one step)",
-    )
-    p.add_argument(
-        "--guide-orders",
-        action="store_true",
-        help="the guided arms order and prune every node's children by the network's values, as "
-        "before the dives (SearchConfig.guide_orders)",
-    )
-    p.add_argument(
-        "--demote-by",
-        type=positive_float,
-        default=None,
-        help="children valued more than this below their best sibling are tried after "
-        "the others (SearchConfig.demote_by)",
-    )
-    p.add_argument(
         "--dives",
         type=int,
         default=None,

@@ -53,7 +53,7 @@ def cmd_bench_checkers(args: argparse.Namespace) -> int:
 
 def cmd_bench_solve(args: argparse.Namespace) -> int:
     from orchestration.bench.solve import bench_solve_task, format_solve_table, parse_tasks
-    from rllock.search.solver import SearchConfig
+    from rllock.search.search_config import SearchConfig
 
     tasks = parse_tasks(args.tasks)
     rows = []
@@ -363,7 +363,7 @@ def cmd_bench_success(args: argparse.Namespace) -> int:
 def cmd_bench_guide(args: argparse.Namespace) -> int:
     from orchestration.bench.guide import bench_guide, format_guide_table, parse_cells, rows_json
     from rllock.search.guide_checkpoint import load_guide
-    from rllock.search.solver import SearchConfig
+    from rllock.search.search_config import SearchConfig
 
     cells = parse_cells(args.cells)
     arms = choices(args.arms, "--arms", ("solver", "guided", "untrained"))
@@ -371,12 +371,6 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
     if len(seeds) != len(items(args.seeds, "--seeds")):
         raise RLLockError(f"--seeds takes a comma-separated list of seeds (0, 1, ...), got {args.seeds!r}")
     config = SearchConfig()
-    if args.abandon_below is not None:
-        if not 0.0 <= args.abandon_below <= 1.0:
-            raise RLLockError(f"--abandon-below is a value in [0, 1], got {args.abandon_below}")
-        config = replace(config, abandon_below=args.abandon_below)
-    if args.demote_by is not None and args.guide_orders:
-        raise RLLockError("--demote-by goes with the search's own order, not --guide-orders")
     if args.dives is not None and args.dives < 1:
         raise RLLockError(f"--dives must be at least 1, got {args.dives}")
     if args.dive_share is not None and not args.dive_share >= 0:
@@ -385,9 +379,6 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
         raise RLLockError(f"--untrained-seed must be at least 0, got {args.untrained_seed}")
     config = replace(
         config,
-        backjump=args.backjump,
-        guide_orders=args.guide_orders,
-        demote_by=args.demote_by,
         dives=config.dives if args.dives is None else args.dives,
         dive_share=config.dive_share if args.dive_share is None else args.dive_share,
     )

@@ -20,7 +20,7 @@ from orchestration.bench.specs import parse_list
 from rllock.core.env import initial_state
 from rllock.search.curriculum import NamedTask, parse_named_task
 from rllock.search.guide import Guide, untrained_like
-from rllock.search.solver import SearchConfig
+from rllock.search.search_config import SearchConfig
 
 log = logging.getLogger(__name__)
 

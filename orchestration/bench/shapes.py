@@ -23,10 +23,12 @@ from rllock.core.feasibility import impossibility
 from rllock.core.shapes import load_shape
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
+from rllock.search.dfs import SearchStats
 from rllock.search.guide import Guide
 from rllock.search.inference import load_policy, with_simulations
 from rllock.search.portfolio import portfolio_search
-from rllock.search.solver import SearchConfig, SearchStats, search
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import search
 
 log = logging.getLogger(__name__)
 

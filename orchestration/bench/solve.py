@@ -10,7 +10,9 @@ from dataclasses import dataclass
 from orchestration.bench.specs import parse_list
 from rllock.core.env import State, Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
-from rllock.search.solver import SearchConfig, reach_depth, search
+from rllock.search.restarts import reach_depth
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import search
 
 log = logging.getLogger(__name__)
 

@@ -79,7 +79,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_solve(args: argparse.Namespace) -> int:
     from rllock.core.env import make_task, tight
     from rllock.core.feasibility import check_feasible
-    from rllock.search.solver import SearchStats
+    from rllock.search.dfs import SearchStats
 
     if args.workers < 1:
         raise RLLockError(f"--workers must be at least 1, got {args.workers}")
@@ -109,8 +109,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
         )
     guide = None
     if args.guide is not None:
+        from rllock.search.dives import dive_depth
         from rllock.search.guide_checkpoint import load_guide
-        from rllock.search.solver import dive_depth
 
         guide = load_guide(args.guide)  # a bad checkpoint is an error before any search
         if dive_depth(task, guide) < 1:
@@ -168,7 +168,8 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
     adding its folder to `written`; the bar shows the search's progress. `guide`: a guide network or
     None (the plain search)."""
     from rllock.search.portfolio import portfolio_search
-    from rllock.search.solver import SearchConfig, search
+    from rllock.search.search_config import SearchConfig
+    from rllock.search.solver import search
 
     config = SearchConfig()
     picture = picture_writer()

@@ -251,13 +251,13 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    from rllock.config import GUIDE_LABELS, GUIDED_SEARCHES, GuideTrainConfig
+    from rllock.config import GUIDE_LABELS, GuideTrainConfig
 
     p = subparsers.add_parser(
         "train-guide",
         help="train the guide network of rllock solve --guide on Ray (a curriculum of searches)",
     )
-    add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS, "guided_search": GUIDED_SEARCHES})
+    add_flags(p, GuideTrainConfig, choices={"label": GUIDE_LABELS})
     p.add_argument(
         "--resume",
         metavar="LOGDIR",

@@ -43,15 +43,9 @@ from typing import Any
 
 from rllock.core.env import Task, assembly_key
 from rllock.search.base import derive_seed
-from rllock.search.solver import (
-    PROGRESS_EVERY,
-    Found,
-    SamplingPool,
-    SearchConfig,
-    SearchStats,
-    _never,
-    search,
-)
+from rllock.search.dfs import PROGRESS_EVERY, SamplingPool, SearchStats, never
+from rllock.search.search_config import SearchConfig
+from rllock.search.solver import Found, search
 
 log = logging.getLogger(__name__)
 
@@ -154,7 +148,7 @@ def portfolio_search(
     time_limit: float,
     config: SearchConfig = SearchConfig(),
     stats: SearchStats | None = None,
-    stop: Callable[[], bool] = _never,
+    stop: Callable[[], bool] = never,
     report: Callable[[SearchStats], None] | None = None,
     guide: Any = None,
     on_ray: bool = False,
