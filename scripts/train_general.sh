@@ -14,7 +14,7 @@ else
   # As the per-task checkpoints (scripts/train_paper.sh): self-imitation, Adam at 3e-4 and replay ratio 8;
   # but 16 simulations: on 2 cores the 6^3 and 200-voxel tasks would leave 64-simulation self-play with
   # too few episodes per task group in an hour, and cube4-k7 learned as well at 16 as at 256
-  # (docs/benchmarks.md). Validation: 16 episodes of one fixed task per group every 10 minutes.
+  # (docs/notebook/benchmarks.md). Validation: 16 episodes of one fixed task per group every 10 minutes.
   .venv/bin/rllock train --tasks "cube4:6-9,cube5:12-16,cube6:18-25,box:6x5x4:8-12,random:60-200:6-20" \
     --minutes "$minutes" --logdir "$logdir" --simulations 16 --actors 2 --learning-rate 3e-4 \
     --replay-ratio 8 --success-fraction 0.25 --validate-minutes 10 --validation-episodes 16 \

@@ -4,7 +4,7 @@
 #   bash scripts/train_paper.sh NAME [MINUTES] [--resume]
 # NAME: cube4-k7 cube4-k8 cube4-k9 cube5-k13 cube5-k14 cube5-k16 cube6-k20 cube6-k22 cube6-k25 ring-k15 sofa-k19
 # Settings that differ from the paper (canvas 8, 256 simulations) and why are listed in
-# docs/benchmarks.md ("Shipped checkpoints").
+# docs/notebook/benchmarks.md ("Shipped checkpoints").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 name="$1"; minutes="${2:-60}"; resume="${3:-}"
@@ -17,7 +17,7 @@ case "$name" in
 esac
 # 4^3 K=7 is easy enough that even the untrained search at 64 simulations finds 5 valid assemblies in the
 # protocol's first batch of 64 episodes; at 4 simulations a batch costs a sixteenth and what the network
-# learned decides how many batches it takes (docs/benchmarks.md: 4, 16 and 256 compared).
+# learned decides how many batches it takes (docs/notebook/benchmarks.md: 4, 16 and 256 compared).
 simulations=64
 if [ "$name" = cube4-k7 ]; then simulations=4; fi
 logdir="runs/$name"

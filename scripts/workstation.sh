@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The GPU workstation's checks in one run, for a machine lent for minutes (docs/benchmarks.md, "On the GPU
-# workstation"): `bench scaling --preset workstation`, then `train-guide` on every core until the deadline,
-# its run folder packed for `--resume` elsewhere. Each step has its own time limit, so that one that fails
-# or overruns still leaves the others their time and their files.
+# The GPU workstation's checks in one run, for a machine lent for minutes (figures: docs/results.md; the
+# run: docs/notebook/benchmarks.md, "On the GPU workstation"): `bench scaling --preset workstation`, then
+# `train-guide` on every core until the deadline, its run folder packed for `--resume` elsewhere. Each step
+# has its own time limit, so that one that fails or overruns still leaves the others their time and their
+# files.
 #
 #   scripts/workstation.sh OUT SECONDS [SCALING FLAGS...]
 #
@@ -39,7 +40,7 @@ timeout $(($(left) / 2)) "$PY" -m orchestration.cli bench scaling --preset works
 echo "scaling: exit $?, $(left) s left"
 
 # The guide's training until a minute before the deadline (Ray's start, the last checkpoint and the
-# packing fit in it); the flags of docs/benchmarks.md's 2-core runs, on every core.
+# packing fit in it); the flags of the notebook's 2-core runs, on every core.
 minutes=$(awk -v s="$(left)" 'BEGIN { printf "%.2f", (s - 50) / 60 }')
 timeout $(($(left) - 15)) "$PY" -m orchestration.cli train-guide --minutes "$minutes" --logdir /tmp/guide-ws \
   --search-seconds 5 --max-voxels 1000 --max-pieces 80 --replay-ratio 100 --batch-size 128 \

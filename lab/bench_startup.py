@@ -1,8 +1,13 @@
-"""Start-up: `rllock generate --checkpoint cube4-k7 --count 5` in two source trees, side by side
+"""Lab study, outside the installed package.
+Question: How long does a fresh process take to its first generated assembly?
+Answer: docs/results.md; the measurements: docs/notebook/benchmarks.md,
+"First contact".
+
+Start-up: `rllock generate --checkpoint cube4-k7 --count 5` in two source trees, side by side
 (alternating rounds), JAX's persistent cache off; the wall time of each process and the seconds per valid
 assembly it prints, their medians and the ratio.
 
-    python scripts/bench_startup.py BASELINE_TREE THIS_TREE ROUNDS   (e.g. a `git worktree` of the baseline)
+    python lab/bench_startup.py BASELINE_TREE THIS_TREE ROUNDS   (e.g. a `git worktree` of the baseline)
 """
 
 import os

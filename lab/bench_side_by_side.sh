@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# A bench of this checkout against a baseline commit, measured side by side: the two run alternately,
+# Lab tool, outside the installed package: is this checkout slower than a baseline? A bench of this checkout against a baseline commit, measured side by side: the two run alternately,
 # ROUNDS times each, with the same flags, and the medians and their ratio are printed.
-#   bash scripts/bench_side_by_side.sh BASE_COMMIT ROUNDS -- selfplay <rllock bench selfplay flags>
-#   bash scripts/bench_side_by_side.sh BASE_COMMIT ROUNDS -- checkers <rllock bench checkers flags>
+#   bash lab/bench_side_by_side.sh BASE_COMMIT ROUNDS -- selfplay <rllock bench selfplay flags>
+#   bash lab/bench_side_by_side.sh BASE_COMMIT ROUNDS -- checkers <rllock bench checkers flags>
 # The baseline is checked out in a temporary git worktree and runs with this checkout's .venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."

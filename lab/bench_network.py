@@ -1,8 +1,13 @@
-"""The U-Net's cost per evaluation by canvas side: `general`'s network (its weights, which fit any side)
+"""Lab study, outside the installed package.
+Question: What does one U-Net evaluation cost by canvas side?
+Answer: docs/results.md; the measurements: docs/notebook/benchmarks.md,
+"Scaling: actors and nodes on one machine".
+
+The U-Net's cost per evaluation by canvas side: `general`'s network (its weights, which fit any side)
 on a batch of states, jitted, on this machine's default JAX device; the median of ROUNDS timed calls
 after one to compile, and the cost per state relative to the first canvas.
 
-    .venv/bin/python scripts/bench_network.py [CANVASES] [BATCH] [ROUNDS]   (default 8,12,16 16 20)
+    .venv/bin/python lab/bench_network.py [CANVASES] [BATCH] [ROUNDS]   (default 8,12,16 16 20)
 """
 
 import dataclasses

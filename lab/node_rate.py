@@ -1,6 +1,13 @@
-"""Node expansions per second of the plain search, this checkout against a baseline commit, side by side.
+"""Lab study, outside the installed package.
+Question: does a change to the search
+cost node rate? (The search is the same node for node when only speed changed, so expansions per
+second compare the cost of a node.)
+Answer: docs/results.md; the measurements: docs/notebook/benchmarks.md,
+"Record scale: 42,875 voxels and 2,000 pieces".
 
-    .venv/bin/python scripts/node_rate.py BASE_COMMIT [--rounds 3] [--seconds 20] [--task SHAPE:K ...]
+Node expansions per second of the plain search, this checkout against a baseline commit, side by side.
+
+    .venv/bin/python lab/node_rate.py BASE_COMMIT [--rounds 3] [--seconds 20] [--task SHAPE:K ...]
 
 Each task runs `rllock.search.solver.search` (seed 0, one core) for `--seconds` in a fresh process of
 each tree, the two trees alternately, `--rounds` times; the medians of expansions per second and their
@@ -28,7 +35,11 @@ TASKS = ("desia-bunny:100", "cube20:300", "cube35:1500")
 ONE_RUN = """
 import json, sys, time
 from rllock.core.env import make_task
-from rllock.search.solver import SearchStats, search
+from rllock.search.solver import search
+try:  # the search's counters moved to rllock.search.dfs; a baseline tree may be older
+    from rllock.search.dfs import SearchStats
+except ImportError:
+    from rllock.search.solver import SearchStats
 shape, pieces, seconds = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 task = make_task(shape, pieces)
 next(search(make_task("cube4", 4), seed=0, time_limit=5), None)  # numba's cache, before the clock

@@ -1,9 +1,14 @@
-"""The web page's first view, measured in headless Chromium: `rllock serve` started afresh, the page
+"""Lab study, outside the installed package.
+Question: How soon does the web page show its first 3D view?
+Answer: docs/results.md; the measurements: docs/notebook/benchmarks.md,
+"A service and a web page".
+
+The web page's first view, measured in headless Chromium: `rllock serve` started afresh, the page
 opened the moment /api/health answers, then opened again `--loads` times; for each load, the
 milliseconds from the request for the page to its first 3D view of a shape (the page's own
 `window.firstViewMs`, with the shape list filled and the preview drawn).
 
-    .venv/bin/python scripts/first_view.py [--loads 5]
+    .venv/bin/python lab/first_view.py [--loads 5]
 """
 
 from __future__ import annotations
