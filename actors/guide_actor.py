@@ -7,9 +7,8 @@ reach an assembly.
 The encoded children, their labels and which are siblings go to the replay buffer actor.
 
 Why rollouts: how deep the search happened to go below a state is mostly the search's luck, and a
-network trained on it ordered siblings no better than chance (docs/benchmarks.md, "What a guide can
-learn from"); a child's rollouts mostly agree (all win or all lose), so its label is a property of the
-remainder it leaves.
+network trained on it ordered siblings no better than chance; a child's rollouts mostly agree (all win
+or all lose), so its label is a property of the remainder it leaves.
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ from rllock.search.solver import search
 
 # States kept per probe wanted: most states a failing search leaves are dead ends (no child to label),
 # and without spares its probes were mostly those, so that the searches that fail, where labels matter
-# most, gave none (docs/benchmarks.md, "On the GPU workstation").
+# most, gave none.
 PROBE_CANDIDATES = 8
 
 

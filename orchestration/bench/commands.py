@@ -179,8 +179,8 @@ def _add_shapes(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--resolutions", default="12,16,20", help="the mesh's resolutions")
     p.add_argument("--pieces", default=None, help="the K sweep (default 10,20,...,100; K > N skipped)")
     p.add_argument("--removal", choices=(*REMOVAL_MODES, "both"), default="straight")
-    # Defaults sized for a first run on 2 cores (the solver's cells, a minute at most each); the issue's
-    # sweep (docs/benchmarks.md) gives --arms solver,general --time-limit 300.
+    # Defaults sized for a first run on 2 cores (the solver's cells, a minute at most each); the full
+    # sweep is --arms solver,general --time-limit 300.
     p.add_argument(
         "--arms", default="solver", help="solver, general, or both, comma-separated (default solver)"
     )

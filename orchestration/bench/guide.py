@@ -75,7 +75,7 @@ def median_seconds(cells: list[Cell]) -> float:
 
 def arm_name(arm: str, untrained_seed: int) -> str:
     """An arm as the table names it: the untrained arm with the seed of its initial weights, since
-    untrained networks of different seeds pick dive states very differently (docs/benchmarks.md)."""
+    untrained networks of different seeds pick dive states very differently."""
     return f"untrained, seed {untrained_seed}" if arm == "untrained" else arm
 
 

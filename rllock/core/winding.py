@@ -22,7 +22,7 @@ from rllock.core import numba_cache  # noqa: F401  (before any @njit: it picks t
 
 # A cluster is replaced by its dipole when the point is farther than BETA times its radius. Barill et
 # al. use 2 with a second-order expansion; the first-order dipole here needs more distance for the same
-# accuracy (measured: winding numbers within 0.01 of the exact ones on the test meshes).
+# accuracy (the tests hold winding numbers within 0.01 of the exact ones).
 BETA = 3.0
 LEAF = 16
 

@@ -30,7 +30,7 @@ _SHADE = (0.82, 0.62, 0.72, 0.9, 1.0, 0.55)
 # the key is marked.
 MAX_NUMBERED = 60
 # The GIF and the HTML page show every piece in every step of the disassembly, so they grow with the
-# square of K (measured at K = 100: a 9 MB page in 1.2 s, a GIF in 10 s); beyond this many pieces they
+# square of K ; beyond this many pieces they
 # would take hours and gigabytes, and only the PNG is drawn.
 MAX_ANIMATED = 200
 # GIF frames: at most this many per move, however many unit steps the move has.

@@ -5,7 +5,7 @@ with `--edge`, at a K that moves with its searches' outcomes (`edge_pieces`).
 
 Pieces have 4 to 40 voxels (n drawn log-uniformly, so that small pieces, where searches fail, are as
 common as large ones), and K = N // n within [5, max_pieces]. mario and spider, the shapes the
-benchmarks in docs/benchmarks.md find hardest, are left out, so that what the guide does there is
+benchmarks find hardest, are left out, so that what the guide does there is
 zero-shot; so are their meshes.
 """
 

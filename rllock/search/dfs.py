@@ -75,8 +75,7 @@ class Child(NamedTuple):
 
 
 # A node's children are sampled on threads only when one sample takes at least this long: shorter ones
-# cost about as much to hand over as to run (measured on 2 cores: 0.35 ms samples on a 4^3 cube ran 1.2x
-# as fast on two threads, 1.4-2.7 ms ones on 581-5,456 voxels 1.5-1.7x).
+# cost about as much to hand over to a thread as to run.
 THREADED_FROM_SECONDS = 0.5e-3
 
 

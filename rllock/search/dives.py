@@ -37,8 +37,7 @@ class RestartSequence:
     def planned(self, unit: int, least: int) -> float:
         """The expansions its next restart is planned to take: its Luby budget, and its dives as many
         as they took on average so far, or `least` before any (one expansion a piece: a dive is a
-        DFS to its depth). On a mesh of 3,825 voxels with K=255 one restart's dives took about 1.8
-        restart units where its budget was 1 (docs/benchmarks.md, "The guide beside the solver")."""
+        DFS to its depth; on large shapes dives can take more than the restart's own budget)."""
         return unit * luby(self.restarts + 1) + (self.dived / self.ran if self.ran else least)
 
 

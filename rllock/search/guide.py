@@ -12,7 +12,7 @@ horizon: the last pieces) a value in [0, 1], the chance that a plain search from
   solver's own judgement, which the network learns to correct.
 Every input is read from boxes of a fixed size and a few counts, so one evaluation (features and
 network) costs the same at N = 500 and N = 40,000, and one set of weights serves every shape and every
-K (docs/benchmarks.md measures it). All children of a node are evaluated in one call.
+K. All children of a node are evaluated in one call.
 """
 
 from __future__ import annotations
@@ -101,8 +101,8 @@ def encode(task: Task, states: list[State], shares: list[float], config: GuideCo
 def overview(task: Task, state: State, w: int) -> np.ndarray:
     """int8 [w, w, w, OVERVIEW]: R's bounding box scaled by the same factor along every axis so that it
     fits w (never enlarged), from its low corner; per cell, the percent of its voxels that are in R and
-    that are placed pieces. Finding R is a mask over the labels (about 0.9 ms per state at N = 42,875,
-    docs/benchmarks.md); the rest follows R's box, small within the guide's horizon, the last pieces."""
+    that are placed pieces. Finding R is a mask over the labels (linear in N); the rest follows R's box,
+    small within the guide's horizon, the last pieces."""
     topo = task.topology
     free = topo.coords[state.labels == 0]
     out = np.zeros((w, w, w, OVERVIEW), np.int8)

@@ -90,7 +90,7 @@ def check_simulations(simulations: int | None) -> None:
 def with_simulations(policy: Policy, simulations: int | None) -> Policy:
     """`policy` searching with `simulations` per decision (None: the number it was trained with). More
     simulations cost proportionally more per batch and can find far more valid assemblies per episode
-    than the training budget does (docs/benchmarks.md)."""
+    than the training budget does."""
     if simulations is None:
         return policy
     if policy.method == "ppo":

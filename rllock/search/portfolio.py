@@ -17,8 +17,8 @@ on. From the end of worker 0's first sample on, the crew measures how busy its t
 seconds of its samples over the wall time, every BALANCE_EVERY_SECONDS. Once that share is below
 KEEP_WHILE_BUSY of the T threads (judged from JUDGE_AFTER_SECONDS on), the lent workers are started, each
 on its core, and worker 0 samples alone for the rest of the run. The measure is a ratio of two times on
-one machine, so a slower or faster machine decides alike; the milliseconds a sample costs, which decided
-before, did not (docs/benchmarks.md, "Every core, a sixth time" and "a ninth time").
+one machine, so a slower or faster machine decides alike; the milliseconds a sample costs, would decide
+differently on every machine.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time
@@ -52,11 +52,8 @@ log = logging.getLogger(__name__)
 JOIN_SECONDS = 2.0  # a worker polls the stop event between node expansions; then it is terminated
 
 # Worker 0 keeps the cores of the lent workers while its threads are busy this share of the time since
-# its first sample ended, judged from JUDGE_AFTER_SECONDS on. Chosen from five hard cells on 2 cores
-# (docs/benchmarks.md, "Every core, a sixth time"), by the share 2 s after the lent workers' start-up, seeds 0
-# and 1: 0.56-0.58 (cube4 K=9) and 0.69-0.74 (desia-dog K=50, 0.76 at most later), where two seeds gained
-# more than two threads; 0.80-0.82 (bunny mesh at 16, K=55), where both gained about as much; 0.84-0.89
-# (desia-bunny K=80 path, spot mesh at 30, K=255), where two threads gained more.
+# its first sample ended, judged from JUDGE_AFTER_SECONDS on: below it lie the cells where two seeds
+# gained more than two threads, above it those where two threads gained more (hard cells on 2 cores).
 KEEP_WHILE_BUSY = 0.80
 JUDGE_AFTER_SECONDS = 2.0
 BALANCE_EVERY_SECONDS = 1.0  # how often the share is looked at

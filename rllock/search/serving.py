@@ -22,7 +22,7 @@ from rllock.search.network import fit_canvas
 
 MAX_CANVAS = 16
 """The largest canvas a multi-task checkpoint plays on beyond its own: the U-Net's cost per evaluation
-grows with the canvas's C^3 voxels (docs/benchmarks.md)."""
+grows with the canvas's C^3 voxels."""
 
 
 @dataclass(frozen=True)
