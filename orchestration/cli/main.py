@@ -24,6 +24,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def reference() -> str:
+    """docs/cli.md: every command's and subcommand's --help, from the parser itself, so the reference
+    cannot drift from the flags (a test compares the file; `bash scripts/cli_reference.sh` rewrites it).
+    Wrapped at a fixed width, whatever the terminal."""
+    parts = [
+        "# `rllock` command reference\n",
+        "Every command's `--help`, generated from the parser by `bash scripts/cli_reference.sh`; "
+        "do not edit by hand.\n",
+    ]
+
+    def walk(parser: argparse.ArgumentParser, depth: int) -> None:
+        parser.formatter_class = lambda prog: argparse.HelpFormatter(prog, width=100)
+        parts.append(f"{'#' * depth} `{parser.prog}`\n\n```text\n{parser.format_help()}```\n")
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in dict.fromkeys(action.choices.values()):  # aliases map to the same parser
+                    walk(sub, min(depth + 1, 4))
+
+    walk(build_parser(), 2)
+    return "\n".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
