@@ -1,28 +1,28 @@
 """`rllock serve`: the Ray Serve application. Two deployments: `Model` (`model.ModelServer`: checkpoints
 by name, network evaluations batched across jobs) and `Service`, the HTTP ingress (FastAPI, OpenAPI at
-/docs) that checks requests, keeps the job queue, runs each job as a Ray task with at most `max_jobs`
-at once, and serves the web page at /.
+/docs), whose routes check requests and hand jobs to the queue (`jobs.JobQueue`), which runs each as a
+Ray task (`work.RayRunner`) with at most `max_jobs` at once; / serves the web page.
 
-A job's task sends its progress to `Service.progress` and returns its files; the ingress writes them
-into the data folder (`jobs`), so jobs may run on any node of a cluster while their files live in one
-place. Every error a client can cause is an HTTP 4xx with {"error": one line}, and no job.
+The FastAPI app is built in the replica from the server's config (`make_api`), so that the routes and
+the body-size guard take their limits from what they were given rather than from a module's state.
+Every error a client can cause is an HTTP 4xx with {"error": one line}, and no job.
 """
 
+from __future__ import annotations
+
 import asyncio
-import io
 import json
 import logging
 import math
 import signal
 import socket
-import tempfile
 import threading
 import time
-import uuid
-import zipfile
-from collections import deque
-from dataclasses import asdict
+from collections.abc import Awaitable, Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import ray
@@ -31,22 +31,27 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from ray import serve
 
+from orchestration.service.files import check_print, declared_too_large, read_upload, stl_zip, zip_name
 from orchestration.service.jobs import (
+    ASSEMBLY_FILES,
     FINAL,
-    GENERATE_BATCH,
-    JOB_ID,
-    SHAPE_NAMES,
-    JobSpec,
-    Limits,
-    check_request,
-    new_record,
-    read_records,
-    run_job,
-    sensible_pieces,
-    shape_grid,
-    write_json,
+    JobQueue,
+    NoSuchJob,
+    TooManyJobs,
+    WrongState,
 )
 from orchestration.service.model import ModelServer
+from orchestration.service.request import (
+    JobSpec,
+    Limits,
+    TooLarge,
+    builtin_rows,
+    check_request,
+    shape_grid,
+    shape_summary,
+    too_large,
+)
+from orchestration.service.work import MODEL, SERVICE, RayRunner
 from rllock.config import ServeConfig
 from rllock.errors import RLLockError
 
@@ -56,21 +61,10 @@ replica_log = logging.getLogger("ray.serve.rllock")
 
 APP = "rllock"
 WEB = Path(__file__).resolve().parent / "web"
-STATIC = {"app.js": "text/javascript", "style.css": "text/css"}
-ASSEMBLY_FILES = {
-    "assembly.json": "application/json",
-    "assembly.puz": "text/plain",
-    "assembly.png": "image/png",
-}
-PROGRESS_EVERY_S = 0.5
+STATIC: Mapping[str, str] = {"app.js": "text/javascript", "style.css": "text/css"}
 EVENTS_POLL_S = 0.25
-
-api = FastAPI(
-    title="RL-Lock",
-    description="Interlocking assemblies from voxel shapes: jobs that solve or generate, their files, "
-    "a web page.",
-    version="0.1.0",
-)
+STATUS: Mapping[type[Exception], int] = {NoSuchJob: 404, WrongState: 409, TooLarge: 413, TooManyJobs: 429}
+"""The HTTP status of each refusal the queue and the upload reader raise."""
 
 
 class ApiError(Exception):
@@ -79,33 +73,19 @@ class ApiError(Exception):
         self.status = status
 
 
-UPLOAD_CAP = {"bytes": 0}  # the largest request body, set by the ingress from its config
+@dataclass(frozen=True)
+class Ingress:
+    """What the routes serve from: the request limits, the job queue, the model deployment's handle (for
+    its statistics), the built-in shapes' rows, and when the server started."""
+
+    limits: Limits
+    jobs: JobQueue
+    model: Any
+    shape_rows: list[dict]
+    started: float
 
 
-@api.middleware("http")
-async def _refuse_large_bodies(request: Request, call_next):
-    """A body that says it is larger than the upload cap (plus room for the form's other fields) is
-    refused before it is read, not after it was spooled to disk."""
-    size = request.headers.get("content-length", "")
-    if UPLOAD_CAP["bytes"] and size.isdigit() and int(size) > UPLOAD_CAP["bytes"] + 65536:
-        message = f"the file is larger than the server's limit of {UPLOAD_CAP['bytes']:,} bytes"
-        return JSONResponse({"error": message}, status_code=413)
-    return await call_next(request)
-
-
-@api.exception_handler(ApiError)
-async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-    return JSONResponse({"error": str(exc)}, status_code=exc.status)
-
-
-@api.exception_handler(RequestValidationError)
-async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    first = exc.errors()[0] if exc.errors() else {}
-    where = ".".join(str(p) for p in first.get("loc", ())[1:]) or "request"
-    return JSONResponse({"error": f"{where}: {first.get('msg', 'invalid')}"}, status_code=422)
-
-
-def _number(name: str, text: str | None, kind: type, default=None):
+def _number(name: str, text: str | None, kind: type, default: Any = None) -> Any:
     """A form field as `kind`, or `default` when empty; a one-line 400 otherwise."""
     if text is None or text.strip() == "":
         return default
@@ -118,300 +98,110 @@ def _number(name: str, text: str | None, kind: type, default=None):
     return value
 
 
-# --- the job's side (a Ray task) ---------------------------------------------------------------------
-
-_COMPILED: dict[tuple, object] = {}  # the compiled remote searches of this worker process, by shapes
-
-
-def _evaluate_for(model, checkpoint: str):
-    """`run_job`'s network for generate: the policy described by the model deployment, its evaluations
-    sent to it (one request per simulation, all lockstep episodes in it)."""
-    from rllock.search.remote import RemoteSearch, remote_searcher
-
-    def evaluate_for(task):
-        key, policy = model.describe.remote(checkpoint, task).result()
-
-        def evaluate(planes: np.ndarray):
-            return model.evaluate.remote((key, planes)).result()
-
-        shapes = (key, policy.task.piece_size, policy.mcts, GENERATE_BATCH)
-        if shapes not in _COMPILED:
-            _COMPILED[shapes] = RemoteSearch(
-                evaluate, policy.net, policy.mcts, policy.task, GENERATE_BATCH, policy.method
-            )
-        return policy, [remote_searcher(_COMPILED[shapes], policy.task)]  # type: ignore[arg-type]
-
-    return evaluate_for
+def _status(exc: Exception) -> int:
+    return next(STATUS[kind] for kind in type(exc).__mro__ if kind in STATUS)
 
 
-@ray.remote(max_retries=0)
-def _job_task(job_id: str, spec: dict, grid: np.ndarray):
-    from rllock.process import setup_jax_cache
-
-    setup_jax_cache()
-    service = serve.get_deployment_handle("Service", app_name=APP)
-    model = serve.get_deployment_handle("Model", app_name=APP)
-    last = [0.0]
-
-    def report(progress: dict) -> None:
-        now = time.monotonic()
-        if now - last[0] >= PROGRESS_EVERY_S:
-            last[0] = now
-            service.progress.remote(job_id, progress)
-
-    job = JobSpec(**spec)
-    evaluate_for = _evaluate_for(model, job.checkpoint) if job.checkpoint is not None else None
-    return run_job(job, grid, report, evaluate_for)
+@contextmanager
+def _refusals() -> Iterator[None]:
+    """A check's one-line error as the client's 4xx: 413 for a size limit, 400 for anything else."""
+    try:
+        yield
+    except RLLockError as exc:
+        raise ApiError(413 if isinstance(exc, TooLarge) else 400, str(exc)) from None
 
 
-def _failure(exc: BaseException) -> str:
-    """A failed job's error in one line: the job's own RLLockError, or what happened to its worker."""
-    cause = getattr(exc, "cause", None) or exc
-    if isinstance(cause, RLLockError):
-        return str(cause)
-    if isinstance(exc, ray.exceptions.WorkerCrashedError | ray.exceptions.NodeDiedError):
-        return "the job's worker process died"
-    text = str(cause).strip().splitlines()
-    return f"{type(cause).__name__}: {text[-1] if text else ''}"
+def make_api(ingress: Ingress) -> FastAPI:
+    """The HTTP API and the page over `ingress`."""
+    api = FastAPI(
+        title="RL-Lock",
+        description="Interlocking assemblies from voxel shapes: jobs that solve or generate, their files, "
+        "a web page.",
+        version="0.1.0",
+    )
+    _add_guards(api, ingress.limits.max_upload_bytes)
+    _add_page(api)
+    _add_shapes(api, ingress)
+    _add_jobs(api, ingress)
+    _add_files(api, ingress)
+    return api
 
 
-def _stl_zip(assembly: Path, voxel_size: float, gap: float) -> bytes:
-    """A zip of piece_NN.stl files and a README saying how they were made and checked."""
-    from rllock.files.assembly import read_assembly
-    from rllock.files.export import write_meshes
+def _add_guards(api: FastAPI, cap: int) -> None:
+    """The body-size guard and the handlers that turn refusals into {"error": one line}."""
 
-    labels, meta = read_assembly(assembly)
-    buffer = io.BytesIO()
-    with tempfile.TemporaryDirectory(prefix="rllock-stl-") as folder:
-        paths = write_meshes(labels, "stl", folder, voxel_size, gap)
-        with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
-            for path in paths:
-                archive.write(path, path.name)
-            verification = meta.get("verification", {})
-            archive.writestr(
-                "README.txt",
-                f"{len(paths)} pieces of {meta.get('shape')} (K={meta.get('K')}, "
-                f"removal={meta.get('removal')}), "
-                f"{voxel_size:g} mm voxels, {gap:g} mm clearance between neighbouring pieces.\n"
-                f"Piece 1 is the key; take the pieces out in order 1, 2, ... K.\n"
-                f"The assembly was verified valid by {verification.get('checker')} "
-                f"v{verification.get('checker_version')} at {verification.get('verified_at')}.\n",
-            )
-    return buffer.getvalue()
+    @api.middleware("http")
+    async def _refuse_large_bodies(request: Request, call_next: Callable[[Request], Awaitable[Response]]):
+        if declared_too_large(request.headers.get("content-length"), cap):
+            return JSONResponse({"error": too_large(cap)}, status_code=413)
+        return await call_next(request)
 
+    async def refused(request: Request, exc: Exception) -> JSONResponse:
+        status = exc.status if isinstance(exc, ApiError) else _status(exc)
+        return JSONResponse({"error": str(exc)}, status_code=status)
 
-# --- the ingress -------------------------------------------------------------------------------------
+    kinds: list[type[Exception]] = [ApiError, *STATUS]
+    for kind in kinds:
+        api.add_exception_handler(kind, refused)
+
+    @api.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        first = exc.errors()[0] if exc.errors() else {}
+        where = ".".join(str(p) for p in first.get("loc", ())[1:]) or "request"
+        return JSONResponse({"error": f"{where}: {first.get('msg', 'invalid')}"}, status_code=422)
 
 
-@serve.ingress(api)
-class Service:
-    """The HTTP API and the job queue. State lives in memory and in the data folder; the queue's pump
-    (a thread) starts queued jobs as slots free and collects finished ones."""
-
-    def __init__(self, config: dict, model) -> None:
-        self.config = ServeConfig(**config)
-        self.limits = Limits(
-            int(self.config.max_upload_mb * 1e6), self.config.max_voxels, self.config.max_time_limit
-        )
-        UPLOAD_CAP["bytes"] = self.limits.max_upload_bytes
-        self.model = model
-        self.folder = Path(self.config.data) / "jobs"
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.lock = threading.RLock()
-        records = read_records(self.folder)
-        self.jobs: dict[str, dict] = {r["id"]: r for r in records}
-        self.queue: deque[str] = deque(r["id"] for r in records if r["state"] == "queued")
-        for job_id in self.queue:
-            write_json(self.folder / job_id / "job.json", self.jobs[job_id])
-        self.running: dict[str, ray.ObjectRef] = {}
-        self.progress_of: dict[str, dict] = {}
-        cpus = float(ray.cluster_resources().get("CPU", 1.0))
-        self.max_jobs = self.config.max_jobs or max(1, int(2 * cpus))
-        self.job_cpus = min(1.0, cpus / self.max_jobs)
-        self.shape_rows = [self._shape_row(name) for name in SHAPE_NAMES]
-        self.started = time.time()
-        threading.Thread(target=self._pump, name="job-queue", daemon=True).start()
-        replica_log.info(
-            "%d jobs on record, %d queued; at most %d at once", len(records), len(self.queue), self.max_jobs
-        )
-
-    # -- the queue --
-
-    def _pump(self) -> None:
-        while True:
-            try:
-                self._pump_once()
-            except Exception:  # the queue must outlive any one job's trouble; the log says what it was
-                replica_log.exception("the job queue's pump")
-                time.sleep(1.0)
-
-    def _pump_once(self) -> None:
-        with self.lock:
-            refs = list(self.running.values())
-        if refs:
-            ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0.2)
-        else:
-            time.sleep(0.2)
-            ready = []
-        for ref in ready:
-            self._collect(ref)
-        with self.lock:
-            while self.queue and len(self.running) < self.max_jobs:
-                self._start(self.queue.popleft())
-
-    def _start(self, job_id: str) -> None:
-        record = self.jobs[job_id]
-        try:
-            grid = np.load(self.folder / job_id / "shape.npy")
-        except (OSError, ValueError) as exc:
-            self._update(
-                record, state="failed", finished=time.time(), error=f"its shape is unreadable: {exc}"
-            )
-            return
-        self.running[job_id] = _job_task.options(num_cpus=self.job_cpus, name=f"rllock-job-{job_id}").remote(
-            job_id, record["spec"], grid
-        )
-        self._update(record, state="running", started=time.time())
-
-    def _collect(self, ref: ray.ObjectRef) -> None:
-        with self.lock:
-            job_id = next((j for j, r in self.running.items() if r == ref), None)
-            if job_id is None:  # cancelled meanwhile
-                return
-        try:
-            summary, files = ray.get(ref)
-        except Exception as exc:  # the job's error, or its worker's death: the record says which
-            with self.lock:
-                if self.running.pop(job_id, None) is not None:
-                    self._update(self.jobs[job_id], state="failed", finished=time.time(), error=_failure(exc))
-            return
-        for name, data in files.items():
-            path = self.folder / job_id / name
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(data)
-        with self.lock:
-            if self.running.pop(job_id, None) is not None:
-                self._update(self.jobs[job_id], state="done", finished=time.time(), result=summary)
-
-    def _update(self, record: dict, **changes) -> None:
-        record.update(changes)
-        if "state" in changes:
-            spec = record["spec"]
-            replica_log.info(
-                "job %s (%s %s K=%d): %s%s",
-                record["id"],
-                spec["method"],
-                spec["shape"],
-                spec["pieces"],
-                record["state"],
-                f": {record['error']}" if record["error"] else "",
-            )
-        if record["state"] in FINAL:
-            self.progress_of.pop(record["id"], None)
-        write_json(self.folder / record["id"] / "job.json", record)
-
-    def progress(self, job_id: str, progress: dict) -> None:
-        """A running job's progress (called by its task)."""
-        with self.lock:
-            if job_id in self.running:
-                self.progress_of[job_id] = progress
-
-    # -- helpers --
-
-    def _record(self, job_id: str) -> dict:
-        with self.lock:
-            if not JOB_ID.match(job_id) or job_id not in self.jobs:
-                raise ApiError(404, f"no job {job_id[:40]!r}")
-            return self.jobs[job_id]
-
-    def _view(self, record: dict) -> dict:
-        with self.lock:
-            view = {k: v for k, v in record.items() if k != "client"}
-            view["progress"] = self.progress_of.get(record["id"])
-            if record["state"] == "queued":
-                view["queue_position"] = (
-                    list(self.queue).index(record["id"]) + 1 if record["id"] in self.queue else None
-                )
-            if record["state"] == "done":
-                base = f"/api/jobs/{record['id']}"
-                view["files"] = {name: f"{base}/files/{name}" for name in ASSEMBLY_FILES} | {
-                    "pieces.zip": f"{base}/pieces.zip"
-                }
-            return view
-
-    @staticmethod
-    def _shape_row(name: str) -> dict:
-        from rllock.core.shapes import builtin_shape
-
-        grid = builtin_shape(name)
-        assert grid is not None
-        n = int(grid.sum())
-        return {"name": name, "N": n, "dimensions": list(grid.shape), "pieces": sensible_pieces(n)}
-
-    async def _upload(self, file: UploadFile | None) -> tuple[str, bytes] | None:
-        if file is None or not file.filename:
-            return None
-        data = await file.read(self.limits.max_upload_bytes + 1)
-        if len(data) > self.limits.max_upload_bytes:
-            raise ApiError(
-                413, f"the file is larger than the server's limit of {self.limits.max_upload_bytes:,} bytes"
-            )
-        return file.filename, data
-
-    async def _grid(self, shape: str | None, file: UploadFile | None, resolution: str | None):
-        upload = await self._upload(file)
-        try:
-            return await asyncio.to_thread(
-                shape_grid, shape or None, upload, _number("resolution", resolution, int), self.limits
-            )
-        except RLLockError as exc:
-            status = 413 if "server's limit" in str(exc) else 400
-            raise ApiError(status, str(exc)) from None
-
-    # -- the API --
-
+def _add_page(api: FastAPI) -> None:
     @api.get("/", include_in_schema=False)
-    def index(self) -> FileResponse:
+    def index() -> FileResponse:
         return FileResponse(WEB / "index.html", media_type="text/html")
 
     @api.get("/static/{name}", include_in_schema=False)
-    def static(self, name: str) -> FileResponse:
+    def static(name: str) -> FileResponse:
         if name not in STATIC:
             raise ApiError(404, f"no file {name[:40]!r}")
         return FileResponse(WEB / name, media_type=STATIC[name])
 
+
+async def _grid(
+    limits: Limits, shape: str | None, file: UploadFile | None, resolution: str | None
+) -> tuple[str, np.ndarray]:
+    """The request's shape: its display name and voxel grid, from a built-in name or the uploaded file."""
+    with _refusals():
+        upload = await read_upload(file, limits.max_upload_bytes)
+        return await asyncio.to_thread(
+            shape_grid, shape or None, upload, _number("resolution", resolution, int), limits
+        )
+
+
+def _add_shapes(api: FastAPI, ingress: Ingress) -> None:
     @api.get("/api/health")
-    def health(self) -> dict:
-        return {"ok": True, "up_seconds": round(time.time() - self.started, 1)}
+    def health() -> dict:
+        return {"ok": True, "up_seconds": round(time.time() - ingress.started, 1)}
 
     @api.get("/api/shapes")
-    def shapes(self) -> list[dict]:
+    def shapes() -> list[dict]:
         """The built-in shapes: name, voxel count N, dimensions and the K that make sense."""
-        return self.shape_rows
+        return ingress.shape_rows
 
     @api.post("/api/shape")
     async def shape(
-        self,
         shape: str | None = Form(None),
         resolution: str | None = Form(None),
         file: UploadFile | None = File(None),
     ) -> dict:
         """A shape (a built-in name, or an uploaded .puz/.vol/.npy/.stl/.obj) before any search: its voxel
         count N, dimensions, the K that make sense, and its voxels (x fastest, then y, then z)."""
-        label, grid = await self._grid(shape, file, resolution)
-        n = int(grid.sum())
+        label, grid = await _grid(ingress.limits, shape, file, resolution)
         flat = np.flatnonzero(grid.transpose(2, 1, 0).ravel())  # x fastest
-        return {
-            "name": label,
-            "N": n,
-            "dimensions": list(grid.shape),
-            "pieces": sensible_pieces(n),
-            "voxels": flat.tolist(),
-        }
+        return shape_summary(label, grid) | {"voxels": flat.tolist()}
+
+
+def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
+    jobs, limits = ingress.jobs, ingress.limits
 
     @api.post("/api/jobs", status_code=201)
     async def create(
-        self,
         request: Request,
         pieces: str = Form(...),
         method: str = Form("solve"),
@@ -426,8 +216,8 @@ class Service:
         """A job: `solve` (the search solver) or `generate` (MCTS with a shipped checkpoint; default the
         one for the task, else `general`) on a built-in shape or an uploaded file, with K = `pieces`."""
         client = request.client.host if request.client else "unknown"
-        self._check_client(client)
-        label, grid = await self._grid(shape, file, resolution)
+        jobs.check_client(client, limits.max_client_jobs)  # before the upload is read and voxelized
+        label, grid = await _grid(limits, shape, file, resolution)
         spec = JobSpec(
             method=method,
             shape=label,
@@ -438,50 +228,29 @@ class Service:
             seed=_number("seed", seed, int, 0),
             checkpoint=checkpoint or None,
         )
-        try:
-            spec, _ = await asyncio.to_thread(check_request, spec, grid, self.limits)
-        except RLLockError as exc:
-            raise ApiError(400, str(exc)) from None
-        job_id = uuid.uuid4().hex[:12]
-        folder = self.folder / job_id
-        folder.mkdir()
-        np.save(folder / "shape.npy", grid)
-        record = new_record(job_id, client, spec, int(grid.sum()))
-        with self.lock:
-            self._check_client(client)
-            write_json(folder / "job.json", record)
-            self.jobs[job_id] = record
-            self.queue.append(job_id)
-            return self._view(record)
-
-    def _check_client(self, client: str) -> None:
-        with self.lock:
-            active = sum(1 for r in self.jobs.values() if r["client"] == client and r["state"] not in FINAL)
-        if active >= self.config.max_client_jobs:
-            raise ApiError(
-                429, f"you have {active} jobs queued or running, the server's limit: wait for one to finish"
-            )
+        with _refusals():
+            spec, _ = await asyncio.to_thread(check_request, spec, grid, limits)
+        return jobs.submit(client, spec, grid, limits.max_client_jobs)
 
     @api.get("/api/jobs")
-    def list_jobs(self) -> list[dict]:
+    def list_jobs() -> list[dict]:
         """Every job, newest first."""
-        with self.lock:
-            return [self._view(r) for r in sorted(self.jobs.values(), key=lambda r: -r["created"])]
+        return jobs.views()
 
     @api.get("/api/jobs/{job_id}")
-    def job(self, job_id: str) -> dict:
+    def job(job_id: str) -> dict:
         """A job's request, state (queued, running, done, failed, cancelled), progress, result and files."""
-        return self._view(self._record(job_id))
+        return jobs.view(job_id)
 
     @api.get("/api/jobs/{job_id}/events")
-    async def events(self, job_id: str) -> StreamingResponse:
+    async def events(job_id: str) -> StreamingResponse:
         """Server-sent events: the job's view (as GET /api/jobs/ID) each time it changes, until it ends."""
-        record = self._record(job_id)
+        jobs.record(job_id)  # a 404 now, not an empty stream
 
         async def stream():
             last = None
             while True:
-                view = self._view(record)
+                view = jobs.view(job_id)
                 text = json.dumps(view)
                 if text != last:
                     yield f"data: {text}\n\n"
@@ -495,77 +264,91 @@ class Service:
         )
 
     @api.post("/api/jobs/{job_id}/cancel")
-    def cancel(self, job_id: str) -> dict:
+    def cancel(job_id: str) -> dict:
         """Stop a queued or running job (a finished one stays as it is: 409)."""
-        record = self._record(job_id)
-        with self.lock:
-            if record["state"] in FINAL:
-                raise ApiError(409, f"job {job_id} has already ended ({record['state']})")
-            if job_id in self.queue:
-                self.queue.remove(job_id)
-            ref = self.running.pop(job_id, None)
-            if ref is not None:
-                ray.cancel(ref, force=True)
-            self._update(record, state="cancelled", finished=time.time())
-            return self._view(record)
+        return jobs.cancel(job_id)
 
-    def _done(self, job_id: str) -> Path:
-        record = self._record(job_id)
-        if record["state"] != "done":
-            raise ApiError(409, f"job {job_id} has no files: it is {record['state']}")
-        return self.folder / job_id / "assembly_001"
+    @api.get("/api/stats")
+    async def stats() -> dict:
+        """The model deployment's batches (network calls, requests and states per call) and the jobs."""
+        model = await ingress.model.stats.remote()
+        return {"model": model, "jobs": jobs.counts(), "max_jobs": jobs.max_jobs}
+
+
+def _add_files(api: FastAPI, ingress: Ingress) -> None:
+    jobs = ingress.jobs
 
     @api.get("/api/jobs/{job_id}/files/{name}")
-    def file(self, job_id: str, name: str) -> FileResponse:
+    def file(job_id: str, name: str) -> FileResponse:
         """The job's assembly: assembly.json (the labels and the verified disassembly), assembly.puz,
         assembly.png."""
         if name not in ASSEMBLY_FILES:
             raise ApiError(404, f"no file {name[:40]!r}: use one of {', '.join(ASSEMBLY_FILES)}")
         return FileResponse(
-            self._done(job_id) / name, media_type=ASSEMBLY_FILES[name], filename=f"{job_id}-{name}"
+            jobs.assembly(job_id) / name, media_type=ASSEMBLY_FILES[name], filename=f"{job_id}-{name}"
         )
 
     @api.get("/api/jobs/{job_id}/pieces.zip")
-    async def pieces(self, job_id: str, gap: str | None = None, voxel_size: str | None = None) -> Response:
+    async def pieces(job_id: str, gap: str | None = None, voxel_size: str | None = None) -> Response:
         """Every piece as an STL file (millimetres), for printing: `voxel_size` mm voxels (default 10),
         shrunk to leave `gap` mm of clearance between neighbouring pieces (default 0.2)."""
         from rllock.files.export import PRINT_GAP
 
         size = _number("voxel_size", voxel_size, float, 10.0)
         clearance = _number("gap", gap, float, PRINT_GAP)
-        if not 0 < size <= 1000:
-            raise ApiError(400, "voxel_size must be more than 0 and at most 1000 mm")
-        if not 0 <= clearance < size:
-            raise ApiError(400, "gap must be at least 0 and smaller than voxel_size")
-        folder = self._done(job_id)
-        data = await asyncio.to_thread(_stl_zip, folder / "assembly.json", size, clearance)
-        name = f"{job_id}-pieces-{size:g}mm-gap{clearance:g}.zip"
+        with _refusals():
+            check_print(size, clearance)
+        folder = jobs.assembly(job_id)
+        data = await asyncio.to_thread(stl_zip, folder / "assembly.json", size, clearance)
         return Response(
             data,
             media_type="application/zip",
-            headers={"Content-Disposition": f'attachment; filename="{name}"'},
+            headers={"Content-Disposition": f'attachment; filename="{zip_name(job_id, size, clearance)}"'},
         )
 
-    @api.get("/api/stats")
-    async def stats(self) -> dict:
-        """The model deployment's batches (network calls, requests and states per call) and the jobs."""
-        with self.lock:
-            states: dict[str, int] = {}
-            for r in self.jobs.values():
-                states[r["state"]] = states.get(r["state"], 0) + 1
-        return {"model": await self.model.stats.remote(), "jobs": states, "max_jobs": self.max_jobs}
+
+# --- the deployments -----------------------------------------------------------------------------------
 
 
-# --- running it ----------------------------------------------------------------------------------------
+@serve.ingress()
+class Service:
+    """The ingress deployment: the job queue (its pump a thread of this replica) and the FastAPI app
+    built over it when the replica starts."""
+
+    def __init__(self, config: dict, model: Any) -> None:
+        settings = ServeConfig(**config)
+        cpus = float(ray.cluster_resources().get("CPU", 1.0))
+        max_jobs = settings.max_jobs or max(1, int(2 * cpus))
+        runner = RayRunner(APP, min(1.0, cpus / max_jobs))
+        self.jobs = JobQueue(Path(settings.data) / "jobs", runner, max_jobs)
+        self.ingress = Ingress(Limits.of(settings), self.jobs, model, builtin_rows(), time.time())
+        self.jobs.start_pump()
+        counts = self.jobs.counts()
+        replica_log.info(
+            "%d jobs on record, %d queued; at most %d at once",
+            sum(counts.values()),
+            counts.get("queued", 0),
+            max_jobs,
+        )
+
+    def progress(self, job_id: str, progress: dict) -> None:
+        """A running job's progress (called by its task)."""
+        self.jobs.progress(job_id, progress)
+
+    def __serve_build_asgi_app__(self) -> FastAPI:
+        return make_api(self.ingress)
 
 
 def application(config: ServeConfig):
     """The bound application: the model deployment and the ingress, on no CPUs of their own (the jobs
     take the cores)."""
     cpus = {"num_cpus": 0}
-    model = serve.deployment(name="Model", max_ongoing_requests=1024, ray_actor_options=cpus)(ModelServer)
-    service = serve.deployment(name="Service", max_ongoing_requests=1024, ray_actor_options=cpus)(Service)
+    model = serve.deployment(name=MODEL, max_ongoing_requests=1024, ray_actor_options=cpus)(ModelServer)
+    service = serve.deployment(name=SERVICE, max_ongoing_requests=1024, ray_actor_options=cpus)(Service)
     return service.bind(asdict(config), model.bind())
+
+
+# --- running it ----------------------------------------------------------------------------------------
 
 
 def check_port(host: str, port: int) -> None:

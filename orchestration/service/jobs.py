@@ -1,179 +1,158 @@
-"""Jobs of `rllock serve`: what a request asks for (checked before any job exists), a job's record on
-disk, and the work itself (`run_job`, in a Ray task).
+"""Jobs of `rllock serve`: their records on disk, and the queue that runs at most `max_jobs` of them at
+once.
 
 A job lives in DATA/jobs/<id>/: job.json (its request, state and result, replaced atomically on every
 change), shape.npy (the voxel grid, so that a queued job can run after a restart), and once done the
 files of its assemblies, assembly_001/ (assembly.json, assembly.puz, assembly.png), each verified by
-the full verifier before it is written. An uploaded file is voxelized when the request comes, under a
-name of the server's own: its name is shown, never used as a path.
+the full verifier before it is written.
+
+The queue knows nothing of Ray: it starts, waits for, collects and cancels jobs through a `Runner`
+(`work.RayRunner` in the server), so that its rules hold the same for any runner and can be checked
+without a cluster. Its pump, a thread, starts queued jobs as slots free and collects finished ones.
 """
 
 from __future__ import annotations
 
 import json
-import math
+import logging
 import os
 import re
-import tempfile
+import threading
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass
+import uuid
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
-from rllock.core.env import Task, make_task
-from rllock.core.reference_checkers import REMOVAL_MODES
-from rllock.core.shapes import VENDORED_SHAPES, builtin_shape
-from rllock.errors import RLLockError
+from orchestration.service.request import JobSpec, spec_from_json, spec_json
 
-METHODS = ("solve", "generate")
 FINAL = frozenset({"done", "failed", "cancelled"})
-UPLOAD_SUFFIXES = (".puz", ".vol", ".npy", ".stl", ".obj")
+STATES = frozenset({"queued", "running"}) | FINAL
 JOB_ID = re.compile(r"^[0-9a-f]{12}$")
-SHAPE_NAMES = ("cube4", "cube5", "cube6", "ring", "stairs", "tube", *VENDORED_SHAPES)
-"""The built-in shapes the web page offers (any cubeN and box:WxHxD are accepted too)."""
-GENERATE_BATCH = 8  # lockstep episodes of a generate job: one network request carries them all
+ASSEMBLY = "assembly_001"
+"""The folder of a done job's assembly (the service asks for one)."""
+ASSEMBLY_FILES: Mapping[str, str] = {
+    "assembly.json": "application/json",
+    "assembly.puz": "text/plain",
+    "assembly.png": "image/png",
+}
+"""The files of a done job's assembly that the API serves, with their media types."""
+PUMP_WAIT_S = 0.2
+
+# In the replicas, Ray Serve's logger is the one with handlers (its log files, and the server's stderr).
+log = logging.getLogger("ray.serve.rllock")
+
+
+class NoSuchJob(LookupError):
+    """No job has this id."""
+
+
+class WrongState(Exception):
+    """The job's state does not allow what was asked (cancel an ended job, files of an unfinished one)."""
+
+
+class TooManyJobs(Exception):
+    """The client already has as many queued and running jobs as the server allows."""
+
+
+class JobFailed(Exception):
+    """A job's run ended without its files; the message is the record's one-line error."""
+
+
+# --- records -----------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class Limits:
-    """What one request may ask of the server (from `rllock.config.ServeConfig`)."""
+class JobRecord:
+    """A job's request, state and result: what job.json holds. A change of state is a new record
+    (`moved`), written whole, so that a reader never sees half of one."""
 
-    max_upload_bytes: int
-    max_voxels: int
-    max_time_limit: float
+    id: str
+    client: str
+    spec: JobSpec
+    n: int  # voxels of the shape: "N" in job.json and the API
+    created: float
+    state: str = "queued"
+    started: float | None = None
+    finished: float | None = None
+    error: str | None = None
+    result: dict | None = None
 
+    def to_json(self) -> dict:
+        """job.json's document, its keys in the order the server has always written them."""
+        return {
+            "id": self.id,
+            "client": self.client,
+            "spec": spec_json(self.spec),
+            "N": self.n,
+            "state": self.state,
+            "created": self.created,
+            "started": self.started,
+            "finished": self.finished,
+            "error": self.error,
+            "result": self.result,
+        }
 
-@dataclass(frozen=True)
-class JobSpec:
-    """A job's request, checked (`check_request`)."""
-
-    method: str
-    shape: str  # a built-in name, or the uploaded file's name (shown only)
-    pieces: int
-    removal: str = "straight"
-    resolution: int | None = None
-    time_limit: float = 60.0
-    seed: int = 0
-    checkpoint: str | None = None  # generate: a shipped checkpoint; None before `check_request`
-
-
-def shape_grid(name: str | None, upload: tuple[str, bytes] | None, resolution: int | None, limits: Limits):
-    """(the shape's display name, its voxel grid) from a built-in name or an uploaded file's (name, bytes);
-    a one-line error for anything else. A name never reads a file: only built-in shapes have names."""
-    if (name is None) == (upload is None):
-        raise RLLockError("give either a shape name or a file")
-    if upload is None:
-        assert name is not None
-        if resolution is not None:
-            raise RLLockError("a resolution applies only to uploaded .stl and .obj meshes")
-        grid = builtin_shape(name)
-        if grid is None:
-            raise RLLockError(
-                f"unknown shape {name!r}: use one of {', '.join(SHAPE_NAMES)}, cubeN or box:WxHxD"
-            )
-        label = name
-    else:
-        label, data = upload
-        label = display_name(label)
-        suffix = Path(label).suffix.lower()
-        if suffix not in UPLOAD_SUFFIXES:
-            raise RLLockError(f"unsupported file {label!r}: use {', '.join(UPLOAD_SUFFIXES)}")
-        if len(data) > limits.max_upload_bytes:
-            raise RLLockError(
-                f"the file is larger than the server's limit of {limits.max_upload_bytes:,} bytes"
-            )
-        grid = _read_upload(label, suffix, data, resolution)
-    grid = np.asarray(grid, dtype=bool)
-    n = int(grid.sum())
-    if n > limits.max_voxels:
-        raise RLLockError(
-            f"the shape has {n:,} voxels, more than the server's limit of {limits.max_voxels:,}"
-        )
-    return label, grid
-
-
-def display_name(name: str) -> str:
-    """The last part of an uploaded file's name, printable, at most 80 characters."""
-    base = re.split(r"[\\/]", name or "")[-1]
-    cleaned = "".join(c for c in base if c.isprintable())[-80:]
-    return cleaned or "upload"
-
-
-def _read_upload(label: str, suffix: str, data: bytes, resolution: int | None) -> np.ndarray:
-    from rllock.core.shapes import load_shape
-
-    with tempfile.TemporaryDirectory(prefix="rllock-upload-") as folder:
-        path = Path(folder) / f"shape{suffix}"
-        path.write_bytes(data)
+    @classmethod
+    def from_json(cls, doc: object) -> JobRecord:
+        """The record of a job.json document; ValueError for one that is not a job's."""
+        if not isinstance(doc, dict) or not JOB_ID.match(str(doc.get("id", ""))):
+            raise ValueError("not a job record: no job id")
+        if doc.get("state") not in STATES or not isinstance(doc.get("spec"), dict):
+            raise ValueError(f"job {doc['id']}: no state or request")
         try:
-            return load_shape(str(path), resolution)
-        except RLLockError as exc:
-            raise RLLockError(str(exc).replace(str(path), label)) from None
-        except (ValueError, IndexError, KeyError, UnicodeDecodeError, EOFError) as exc:
-            # A parser's own complaint about a malformed file, in one line.
-            raise RLLockError(
-                f"cannot read {label!r}: {str(exc).splitlines()[0] if str(exc) else exc}"
-            ) from None
-
-
-def sensible_pieces(n: int) -> dict[str, int]:
-    """The K a user would start from for N voxels: pieces of 4 to 40 voxels (`low` to `high`); suggested,
-    pieces of about 20 voxels, where the solver is quick on most shapes (smaller pieces in thin parts
-    often take minutes: docs/benchmarks.md); `max` is N, the largest K there is."""
-    low = max(2, math.ceil(n / 40))
-    high = max(low, n // 4)
-    suggested = min(max(round(n / 20), low), high)
-    return {"min": 2, "max": n, "low": low, "high": min(high, n), "suggested": min(suggested, n)}
-
-
-def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> tuple[JobSpec, Task]:
-    """The spec with its checkpoint chosen, and its task, after every check that can fail before a
-    search: the method, K against N, the removal mode, the time limit, a task with no assembly, and for
-    generate a shipped checkpoint that plays the task."""
-    from rllock.core.feasibility import check_feasible
-
-    if spec.method not in METHODS:
-        raise RLLockError(f"unknown method {spec.method!r}: use one of {', '.join(METHODS)}")
-    if spec.removal not in REMOVAL_MODES:
-        raise RLLockError(f"unknown removal mode {spec.removal!r}: use one of {', '.join(REMOVAL_MODES)}")
-    if not (math.isfinite(spec.time_limit) and 0 < spec.time_limit <= limits.max_time_limit):
-        raise RLLockError(f"the time limit must be more than 0 and at most {limits.max_time_limit:g} s")
-    task = make_task(grid, spec.pieces, spec.removal, name=spec.shape)
-    check_feasible(task)
-    if spec.method == "generate":
-        from rllock.files.checkpoint import SHIPPED, read_metadata, shipped_names
-        from rllock.search.serving import checkpoint_for, served
-
-        if spec.checkpoint is None:
-            return JobSpec(**{**asdict(spec), "checkpoint": checkpoint_for(task)}), task
-        if spec.checkpoint not in shipped_names():
-            raise RLLockError(
-                f"unknown checkpoint {spec.checkpoint!r}: use one of {', '.join(shipped_names())}"
+            return cls(
+                id=doc["id"],
+                client=str(doc.get("client", "unknown")),
+                spec=spec_from_json(doc["spec"]),
+                n=int(doc["N"]),
+                created=float(doc["created"]),
+                state=doc["state"],
+                started=doc.get("started"),
+                finished=doc.get("finished"),
+                error=doc.get("error"),
+                result=doc.get("result"),
             )
-        served(read_metadata(SHIPPED / spec.checkpoint), SHIPPED / spec.checkpoint, task)
-    elif spec.checkpoint is not None:
-        raise RLLockError("a checkpoint applies only to the generate method")
-    return spec, task
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"job {doc['id']}: {exc}") from None
 
 
-# --- records on disk ---------------------------------------------------------------------------------
+def new_record(client: str, spec: JobSpec, n: int, now: float) -> JobRecord:
+    """A queued job with a fresh id."""
+    return JobRecord(id=uuid.uuid4().hex[:12], client=client, spec=spec, n=n, created=now)
 
 
-def new_record(job_id: str, client: str, spec: JobSpec, n: int) -> dict:
-    return {
-        "id": job_id,
-        "client": client,
-        "spec": asdict(spec),
-        "N": n,
-        "state": "queued",
-        "created": time.time(),
-        "started": None,
-        "finished": None,
-        "error": None,
-        "result": None,
-    }
+def moved(
+    record: JobRecord, state: str, now: float, *, error: str | None = None, result: dict | None = None
+) -> JobRecord:
+    """The record in `state`: running stamps `started`; an end stamps `finished` with its error or
+    result; queued again (a restart) forgets when it started."""
+    if state == "queued":
+        return replace(record, state=state, started=None)
+    if state == "running":
+        return replace(record, state=state, started=now)
+    assert state in FINAL, state
+    return replace(record, state=state, finished=now, error=error, result=result)
+
+
+def job_view(record: JobRecord, progress: dict | None, position: int | None) -> dict:
+    """What the API says of a job: its record but the client's address, its latest progress, its place
+    in the queue while queued, and the addresses of its files once done."""
+    view = record.to_json()
+    del view["client"]
+    view["progress"] = progress
+    if record.state == "queued":
+        view["queue_position"] = position
+    if record.state == "done":
+        base = f"/api/jobs/{record.id}"
+        view["files"] = {name: f"{base}/files/{name}" for name in ASSEMBLY_FILES} | {
+            "pieces.zip": f"{base}/pieces.zip"
+        }
+    return view
 
 
 def write_json(path: Path, doc: dict) -> None:
@@ -183,122 +162,216 @@ def write_json(path: Path, doc: dict) -> None:
     os.replace(tmp, path)
 
 
-def read_records(jobs: Path) -> list[dict]:
+def read_records(jobs: Path) -> list[JobRecord]:
     """Every readable job record under `jobs`, oldest first. A job the server was running or holding in
     its queue when it stopped is queued again: its request and shape are on disk."""
     records = []
     for path in sorted(jobs.glob("*/job.json")):
         try:
-            record = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
+            record = JobRecord.from_json(json.loads(path.read_text()))
+        except (OSError, ValueError):  # json's decode error is a ValueError too
             continue
-        if not (isinstance(record, dict) and JOB_ID.match(str(record.get("id", "")))):
-            continue
-        if record["state"] not in FINAL:
-            record.update(state="queued", started=None)
-        records.append(record)
-    return sorted(records, key=lambda r: r["created"])
+        records.append(record if record.state in FINAL else moved(record, "queued", 0.0))
+    return sorted(records, key=lambda r: r.created)
 
 
-# --- the work ----------------------------------------------------------------------------------------
+def write_files(folder: Path, files: Mapping[str, bytes]) -> None:
+    """A finished job's files (by path relative to its folder) into its folder."""
+    for name, data in files.items():
+        path = folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
 
-Report = Callable[[dict], None]
+
+def count_states(records: list[JobRecord]) -> dict[str, int]:
+    states: dict[str, int] = {}
+    for record in records:
+        states[record.state] = states.get(record.state, 0) + 1
+    return states
 
 
-def run_job(
-    spec: JobSpec, grid: np.ndarray, report: Report, evaluate_for=None
-) -> tuple[dict, dict[str, bytes]]:
-    """(summary, files by relative path) of one job, run in a scratch folder: its assemblies, each
-    verified and written with its picture. `report` takes progress as it comes; `evaluate_for(task)`
-    (generate only) gives (the policy without weights, the batched network evaluation)."""
-    task = make_task(grid, spec.pieces, spec.removal, name=spec.shape)
-    with tempfile.TemporaryDirectory(prefix="rllock-job-") as folder:
-        out = Path(folder)
-        if spec.method == "solve":
-            summary = _solve(spec, task, out, report)
+# --- the queue ---------------------------------------------------------------------------------------
+
+
+class Runner(Protocol):
+    """Where jobs run. A handle is whatever `start` returns; `result` raises `JobFailed` for a job that
+    failed or whose worker died."""
+
+    def start(self, job_id: str, spec: JobSpec, grid: np.ndarray) -> Any: ...
+
+    def ready(self, handles: list[Any], timeout: float) -> list[Any]: ...
+
+    def result(self, handle: Any) -> tuple[dict, dict[str, bytes]]: ...
+
+    def cancel(self, handle: Any) -> None: ...
+
+
+class JobQueue:
+    """The jobs on record, the queue, and those running. Every change happens under one lock and is
+    written to job.json before the lock is let go, so that the API and the disk agree."""
+
+    def __init__(self, folder: Path, runner: Runner, max_jobs: int) -> None:
+        self.folder = folder
+        self.runner = runner
+        self.max_jobs = max_jobs
+        folder.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.RLock()
+        records = read_records(folder)
+        self._records = {r.id: r for r in records}
+        self._queue = deque(r.id for r in records if r.state == "queued")
+        for job_id in self._queue:  # a job that was running when the server stopped: queued on disk too
+            write_json(folder / job_id / "job.json", self._records[job_id].to_json())
+        self._running: dict[str, Any] = {}
+        self._progress: dict[str, dict] = {}
+
+    # -- the pump --
+
+    def start_pump(self) -> threading.Thread:
+        """The thread that runs the queue for as long as the process lives."""
+        thread = threading.Thread(target=self._pump, name="job-queue", daemon=True)
+        thread.start()
+        return thread
+
+    def _pump(self) -> None:
+        while True:
+            try:
+                self.pump_once()
+            except Exception:  # the queue must outlive any one job's trouble; the log says what it was
+                log.exception("the job queue's pump")
+                time.sleep(1.0)
+
+    def pump_once(self, wait_s: float = PUMP_WAIT_S) -> None:
+        """One turn: collect the jobs that finished within `wait_s`, then start queued ones while slots
+        are free."""
+        with self._lock:
+            handles = list(self._running.values())
+        if handles:
+            ready = self.runner.ready(handles, wait_s)
         else:
-            summary = _generate(spec, task, out, report, evaluate_for)
-        files = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
-    return summary, files
+            time.sleep(wait_s)
+            ready = []
+        for handle in ready:
+            self._collect(handle)
+        with self._lock:
+            while self._queue and len(self._running) < self.max_jobs:
+                self._start(self._queue.popleft())
 
+    def _start(self, job_id: str) -> None:
+        record = self._records[job_id]
+        try:
+            grid = np.load(self.folder / job_id / "shape.npy")
+        except (OSError, ValueError) as exc:
+            self._set(moved(record, "failed", time.time(), error=f"its shape is unreadable: {exc}"))
+            return
+        self._running[job_id] = self.runner.start(job_id, record.spec, grid)
+        self._set(moved(record, "running", time.time()))
 
-def _picture():
-    from rllock.files.render import write_picture
+    def _collect(self, handle: Any) -> None:
+        with self._lock:
+            job_id = next((j for j, h in self._running.items() if h == handle), None)
+        if job_id is None:  # cancelled meanwhile
+            return
+        try:
+            summary, files = self.runner.result(handle)
+        except JobFailed as exc:
+            with self._lock:
+                if self._running.pop(job_id, None) is not None:
+                    self._set(moved(self._records[job_id], "failed", time.time(), error=str(exc)))
+            return
+        write_files(self.folder / job_id, files)
+        with self._lock:
+            if self._running.pop(job_id, None) is not None:
+                self._set(moved(self._records[job_id], "done", time.time(), result=summary))
 
-    return write_picture
+    def _set(self, record: JobRecord) -> None:
+        """`record` becomes the job's record, on disk as in memory."""
+        before = self._records.get(record.id)
+        self._records[record.id] = record
+        if before is None or before.state != record.state:
+            spec = record.spec
+            log.info(
+                "job %s (%s %s K=%d): %s%s",
+                record.id,
+                spec.method,
+                spec.shape,
+                spec.pieces,
+                record.state,
+                f": {record.error}" if record.error else "",
+            )
+        if record.state in FINAL:
+            self._progress.pop(record.id, None)
+        write_json(self.folder / record.id / "job.json", record.to_json())
 
+    # -- what the API asks --
 
-def _solve(spec: JobSpec, task: Task, out: Path, report: Report) -> dict:
-    from rllock.files.assembly import write_assembly
-    from rllock.search.solver import SearchConfig, SearchStats, search
+    def check_client(self, client: str, max_client_jobs: int) -> None:
+        """TooManyJobs when `client` has `max_client_jobs` jobs queued or running."""
+        with self._lock:
+            active = sum(1 for r in self._records.values() if r.client == client and r.state not in FINAL)
+        if active >= max_client_jobs:
+            raise TooManyJobs(
+                f"you have {active} jobs queued or running, the server's limit: wait for one to finish"
+            )
 
-    stats = SearchStats()
-    start = time.monotonic()
+    def submit(self, client: str, spec: JobSpec, grid: np.ndarray, max_client_jobs: int) -> dict:
+        """A new queued job's view; its folder, shape and record are on disk before it is queued."""
+        with self._lock:
+            self.check_client(client, max_client_jobs)
+            record = new_record(client, spec, int(grid.sum()), time.time())
+            folder = self.folder / record.id
+            folder.mkdir()
+            np.save(folder / "shape.npy", grid)
+            self._set(record)
+            self._queue.append(record.id)
+            return self._view(record)
 
-    def progress(s: SearchStats) -> None:
-        report(
-            {
-                "placed": s.placed,
-                "pieces": task.pieces,
-                "nodes": s.expansions,
-                "restarts": s.restarts,
-                "elapsed": round(time.monotonic() - start, 1),
-            }
-        )
+    def cancel(self, job_id: str) -> dict:
+        """Stop a queued or running job; WrongState for one that has ended."""
+        with self._lock:
+            record = self.record(job_id)
+            if record.state in FINAL:
+                raise WrongState(f"job {job_id} has already ended ({record.state})")
+            if job_id in self._queue:
+                self._queue.remove(job_id)
+            handle = self._running.pop(job_id, None)
+            if handle is not None:
+                self.runner.cancel(handle)
+            self._set(moved(record, "cancelled", time.time()))
+            return self._view(self._records[job_id])
 
-    config = SearchConfig()
-    for found in search(
-        task, seed=spec.seed, time_limit=spec.time_limit, config=config, stats=stats, report=progress
-    ):
-        write_assembly(
-            out / "assembly_001",
-            found.labels,
-            removal=task.removal,
-            shape=spec.shape,
-            method={"name": "search", **asdict(config), "service": True},
-            seed=found.seed,
-            timings={"seconds": round(found.seconds, 4), "node_expansions": found.expansions},
-            picture=_picture(),
-        )
-        return {"assemblies": 1, "seconds": round(time.monotonic() - start, 3), "nodes": stats.expansions}
-    raise RLLockError(
-        f"no valid assembly of {spec.shape} K={task.pieces} within {spec.time_limit:g} s: "
-        f"best {stats.placed} of {task.pieces - 1} pieces placed; give more time or another K"
-    )
+    def progress(self, job_id: str, progress: dict) -> None:
+        """A running job's latest progress (sent by its run)."""
+        with self._lock:
+            if job_id in self._running:
+                self._progress[job_id] = progress
 
+    def record(self, job_id: str) -> JobRecord:
+        with self._lock:
+            if not JOB_ID.match(job_id) or job_id not in self._records:
+                raise NoSuchJob(f"no job {job_id[:40]!r}")
+            return self._records[job_id]
 
-def _generate(spec: JobSpec, task: Task, out: Path, report: Report, evaluate_for) -> dict:
-    from rllock.search.inference import generate
+    def assembly(self, job_id: str) -> Path:
+        """The folder of a done job's assembly; WrongState before it is done."""
+        record = self.record(job_id)
+        if record.state != "done":
+            raise WrongState(f"job {job_id} has no files: it is {record.state}")
+        return self.folder / job_id / ASSEMBLY
 
-    policy, searchers = evaluate_for(task)
-    start = time.monotonic()
+    def view(self, job_id: str) -> dict:
+        with self._lock:
+            return self._view(self.record(job_id))
 
-    def progress(episodes: int, valid: int, best: int) -> None:
-        report(
-            {
-                "placed": best,
-                "pieces": task.pieces,
-                "episodes": episodes,
-                "elapsed": round(time.monotonic() - start, 1),
-            }
-        )
+    def views(self) -> list[dict]:
+        """Every job's view, newest first."""
+        with self._lock:
+            return [self._view(r) for r in sorted(self._records.values(), key=lambda r: -r.created)]
 
-    result = generate(
-        policy,
-        count=1,
-        batch=GENERATE_BATCH,
-        time_limit=spec.time_limit,
-        seed=spec.seed,
-        out=out,
-        picture=_picture(),
-        progress=False,
-        report=progress,
-        searchers=searchers,
-    )
-    if not result.valid:
-        raise RLLockError(
-            f"no valid assembly of {spec.shape} K={task.pieces} from {spec.checkpoint} in "
-            f"{result.episodes} episodes ({spec.time_limit:g} s): best {result.best_placed} of "
-            f"{task.pieces - 1} pieces placed; try the solver"
-        )
-    return {"assemblies": result.valid, "seconds": round(result.seconds, 3), "episodes": result.episodes}
+    def counts(self) -> dict[str, int]:
+        """Jobs on record by state."""
+        with self._lock:
+            return count_states(list(self._records.values()))
+
+    def _view(self, record: JobRecord) -> dict:
+        position = self._queue.index(record.id) + 1 if record.id in self._queue else None
+        return job_view(record, self._progress.get(record.id), position)
