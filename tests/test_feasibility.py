@@ -213,7 +213,7 @@ def test_spider_k20_and_k30_have_no_assembly_its_legs_only_the_key_and_last_piec
     for pieces in (20, 30):
         reason = impossibility(make_task("spider", pieces))
         assert reason is not None and "tips of thin strands" in reason, reason
-    # K = 15 and 16 have assemblies (the solver finds them, docs/benchmarks.md); K = 19 has no proof.
+    # K = 15 and 16 have assemblies (the solver finds them, docs/results.md); K = 19 has no proof.
     assert all(impossibility(make_task("spider", k)) is None for k in (15, 16, 19))
     code, _, err = run_cli("solve", "--shape", "spider", "--pieces", "20", "--out", "/nonexistent/never")
     assert code == 2 and len(err.strip().splitlines()) == 1 and "n = 10 voxels" in err, err

@@ -444,7 +444,7 @@ def test_edge_moves_a_cells_k_up_after_a_solve_and_down_after_a_failure_within_i
     assert [edge_pieces(60, True, dog), edge_pieces(60, False, dog)] == [64, 58]
     assert [edge_pieces(120, True, dog), edge_pieces(120, False, dog)] == [145, 116]
     # Against the rule spelled out by brute force: the nearest K each way whose N mod K < N // K and that
-    # no proof rules out (spider: K = 20-40 are impossible, docs/benchmarks.md).
+    # no proof rules out (spider: K = 20-42 are impossible, docs/results.md).
     (spider,) = named_tasks("spider:15")
     for task in (cube6, dog, mario, spider):
         n_all = task.size

@@ -291,7 +291,7 @@ def test_thin_and_wide_growth_keep_only_checker_accepted_chunks_and_change_what_
 
 def test_deep_mode_solves_many_small_pieces_where_the_plain_search_gets_stuck():
     """mario (548 voxels, 4 thick) in K=50 pieces of 10: the plain search strands what remains (none
-    in 300 s in docs/benchmarks.md); deep mode keeps it compact (0.5 s there)."""
+    in 300 s in docs/notebook/benchmarks.md); deep mode keeps it compact (0.5 s there)."""
     task = make_task("mario", 50)
     plain = SearchConfig(deep_from=10**6)
     assert not plain.deep(task) and SearchConfig().deep(task)

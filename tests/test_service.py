@@ -176,7 +176,8 @@ def test_bad_ids_and_early_files(server):
 
 
 def test_cancel_and_the_client_limit(server):
-    # mario K=60: the solver finds no assembly in 300 s (docs/benchmarks.md), so these run until cancelled.
+    # mario K=60: the solver finds no assembly of seeds 0-6 within 150 s (docs/results.md), so these run
+    # until cancelled.
     jobs = [server.job(shape="mario", pieces=60, time_limit=100, seed=s) for s in range(5)]
     r = server.post("/api/jobs", data={"shape": "cube4", "pieces": "6"})
     assert r.status_code == 429 and "limit" in r.json()["error"]

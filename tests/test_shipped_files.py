@@ -62,7 +62,7 @@ def test_the_pattern_finds_machine_paths_and_nothing_else():
 
 def test_shipped_checkpoints_docs_and_readme_name_no_machine_path():
     files = shipped_files()
-    assert len(ckpt.shipped_names()) >= 1 and any(p.name == "benchmarks.md" for p in files)
+    assert len(ckpt.shipped_names()) >= 1 and any(p.name == "results.md" for p in files)
     bad = {str(p.relative_to(ROOT)): hits for p in files if (hits := machine_paths(p.read_bytes()))}
     assert bad == {}
 
