@@ -1,5 +1,5 @@
 """The `rllock` command for the tests, its imports paid once: a process that imports the command and the
-libraries it loads (about 2 s on a busy 2-core machine, more than most bad-input checks take), then for
+libraries it loads (seconds on a busy machine, longer than most bad-input checks take), then for
 each request forks a child that is the command, `python -m orchestration.cli ARGS` from the import on:
 its own process, its own stdin (empty), stdout and stderr (files), working folder and exit status, and
 an uncaught exception ends it with a traceback and status 1, as the interpreter does. `tests/helpers.py`
