@@ -15,7 +15,7 @@ import trimesh
 from helpers import run_cli
 
 from orchestration.cli.assemblies import add_commands
-from rllock.core.meshes import piece_volume
+from rllock.core.piece_meshes import piece_volume
 from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
 from rllock.core.shapes import from_xfastest, read_puz_labels
 from rllock.core.verifier import verify_labels

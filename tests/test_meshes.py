@@ -13,14 +13,8 @@ import trimesh
 from matplotlib.path import Path as MplPath
 from scipy import ndimage
 
-from rllock.core.meshes import (
-    _inside_rows,
-    assembly_meshes,
-    edge_only_contacts,
-    piece_mesh,
-    piece_volume,
-    voxelize_mesh,
-)
+from rllock.core.meshes import _inside_rows, voxelize_mesh
+from rllock.core.piece_meshes import assembly_meshes, edge_only_contacts, piece_mesh, piece_volume
 from rllock.core.shapes import load_shape
 from rllock.core.winding import build_tree, winding_numbers, winding_numbers_exact
 from rllock.errors import RLLockError

@@ -14,7 +14,13 @@ from pathlib import Path
 import numpy as np
 from numba.core.registry import CPUDispatcher
 
-from rllock.core import compiled_checkers, compiled_sampler, winding
+from rllock.core import (
+    compiled_checkers,
+    compiled_interlocking,
+    compiled_proposals,
+    compiled_sampler,
+    winding,
+)
 from rllock.core.env import candidates_many, initial_state, make_task, sample_accepted
 from rllock.core.numba_cache import (
     CORE,
@@ -31,7 +37,7 @@ from rllock.search.solver import solve
 
 def _signatures() -> set[tuple[str, str]]:
     found = set()
-    for module in (compiled_checkers, compiled_sampler, winding):
+    for module in (compiled_checkers, compiled_interlocking, compiled_proposals, compiled_sampler, winding):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher):
                 found |= {(f"{module.__name__}.{name}", str(sig)) for sig in value.signatures}

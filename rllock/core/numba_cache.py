@@ -3,17 +3,16 @@ core's sources, not beside them.
 
 Numba's default cache is the `__pycache__` folder beside each source file. A Ray job runs from an
 uploaded copy of the repository (Ray leaves out what .gitignore names, `__pycache__` among it), unpacked
-in a new folder on every node, so every job on every node compiled the search anew: about two minutes on
-a 2-core VM, 89 s on the GPU workstation, before its first episode. Here the cache is
-`$XDG_CACHE_HOME/rllock/numba/<digest>` (`~/.cache/rllock/numba/...`), where the digest is of every
-source file of `rllock.core` together: a copy of the same sources anywhere on the machine finds what
-`scripts/install.sh` compiled, and a change to any of them (a compiled callee in another file, a
-constant frozen into compiled code) compiles afresh instead of loading code older than its sources.
-Numba's own `NUMBA_CACHE_DIR`, when set, still decides. Import this module before any `@njit(cache=True)`
-of the core: numba picks a function's cache folder when it is decorated.
+in a new folder on every node, so every job on every node compiled the search anew, for minutes, before
+its first episode. Here the cache is `$XDG_CACHE_HOME/rllock/numba/<digest>` (`~/.cache/rllock/numba/...`),
+where the digest is of every source file of `rllock.core` together: a copy of the same sources anywhere
+on the machine finds what `scripts/install.sh` compiled, and a change to any of them (a compiled callee
+in another file, a constant frozen into compiled code) compiles afresh instead of loading code older
+than its sources. Numba's own `NUMBA_CACHE_DIR`, when set, still decides. Import this module before any
+`@njit(cache=True)` of the core: numba picks a function's cache folder when it is decorated.
 
-Each version of the sources compiles into a folder of its own (about 18 MB), so every update would leave
-one behind: a folder is marked when its version is imported (at most once a day), and the folders of
+Each version of the sources compiles into a folder of its own, so every update would leave one behind:
+a folder is marked when its version is imported (at most once a day), and the folders of
 other versions unmarked for STALE_DAYS are removed (`prune`).
 """
 
@@ -26,6 +25,7 @@ import re
 import shutil
 import time
 from pathlib import Path
+from types import FunctionType
 
 from numba.core.caching import (
     CacheImpl,
@@ -42,6 +42,7 @@ DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
 def numba_cache_root() -> Path:
+    """The folder that holds a folder per version of the core's sources: per user, outside the sources."""
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rllock" / "numba"
 
 
@@ -58,7 +59,7 @@ class CoreSourcesLocator(_SourceFileBackedLocatorMixin, _CacheLocator):
     """The cache folder of a function of `rllock.core` (module docstring); other functions are left to
     numba's own locators. Numba still checks each file's content hash against its index."""
 
-    def __init__(self, py_func, py_file: str):
+    def __init__(self, py_func: FunctionType, py_file: str) -> None:
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
         self._cache_path = str(numba_cache_root() / sources_digest(Path(py_file).resolve().parent))
@@ -67,7 +68,7 @@ class CoreSourcesLocator(_SourceFileBackedLocatorMixin, _CacheLocator):
         return self._cache_path
 
     @classmethod
-    def from_function(cls, py_func, py_file: str):
+    def from_function(cls, py_func: FunctionType, py_file: str) -> CoreSourcesLocator | None:
         if Path(py_file).resolve().parent != CORE:
             return None
         # Returns None where the folder cannot be made or written: numba then tries its own locators.

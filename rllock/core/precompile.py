@@ -1,12 +1,12 @@
 """Compile the numba code once, at install time, into numba's on-disk cache.
 
-On a cold cache the sampler, the checkers and the winding numbers take about two minutes to compile on a
-2-core VM (one signature of the sampler alone 36 s; longer beside other work), and that time used to
-land inside the first command's `--time-limit`: a fresh install's first `solve` of cube4 K=6 in the
-service ran out of its 60 s compiling. `scripts/install.sh` runs this module after installing, so
-commands and tests start from compiled code; with a warm cache it only loads it (a few seconds). Each
-call below goes through the public functions the search, MCTS and the mesh loader use, with
-their argument types: numba compiles one version per type signature.
+On a cold cache the sampler, the checkers and the winding numbers take minutes to compile, and that
+time would land inside the first command's `--time-limit`: a fresh install's first `solve` could spend
+its whole time limit compiling. `scripts/install.sh` runs this module after installing, so commands and
+tests start from compiled code; with a warm cache it only loads it. Each call below goes through the
+public functions the search, MCTS and the mesh loader use, with their argument types: numba compiles
+one version per type signature. The compiled functions they call (the proposals of `compiled_proposals`,
+the interlocking test of `compiled_interlocking`) are compiled into them, with the same types.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ def write_meshes(
 ) -> list[Path]:
     """One mesh file per piece, `piece_NN.<fmt>`, in piece order; returns the paths written. Earlier
     `piece_NN.<fmt>` files in `out_dir` that this export does not replace are removed (module docstring)."""
-    from rllock.core.meshes import (  # imported here: trimesh is slow to import
+    from rllock.core.piece_meshes import (  # imported here: trimesh is slow to import
         assembly_meshes,
         edge_only_contacts,
     )
