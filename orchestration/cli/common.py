@@ -61,7 +61,8 @@ def add_task_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--shape",
         required=True,
-        help="cubeN, box:WxHxD, ring, a .puz/.vol/.npy file, or a closed .stl/.obj mesh",
+        help="cube4 (any cubeN), box:WxHxD, ring, stairs, tube, a shipped shape by name (bunny, mario, ...), "
+        "a .puz/.vol/.npy file, or an .stl/.obj mesh (holes capped, open surfaces filled, with a warning)",
     )
     p.add_argument(
         "--resolution",

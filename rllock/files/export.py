@@ -1,15 +1,15 @@
 """Export an assembly for making or studying it: a mesh per piece (OBJ or STL), or a BurrTools puzzle.
 
-Meshes (see `rllock.core.meshes`): one watertight file per piece, `piece_01.stl` ... `piece_KK.stl` (or
+Meshes (see `rllock.core.piece_meshes`): one watertight file per piece, `piece_01.stl` ... `piece_KK.stl` (or
 `.obj`), in millimetres, each in its assembled position (voxel (x, y, z) spans [x, x+1] * voxel size
 along x, and so on), so loading them all shows the assembled shape. With a clearance gap every piece
 is shrunk by gap/2 on each face that borders another piece or the outside, leaving `gap` between
 neighbouring pieces. The gap defaults to PRINT_GAP = 0.2 mm, a typical FDM printing clearance, which also
 keeps every STL file watertight when a slicer welds its vertices (at gap 0, voxels of one piece that touch
-only along an edge make a non-manifold edge there: see `rllock.core.meshes`). Gap 0 gives the exact shape.
-Exporting into a folder that holds an earlier export replaces that export: piece files of the same format
-that this one does not write (an earlier, larger puzzle's `piece_07.stl` ...) are removed and named in the
-log, so the folder holds exactly this puzzle's pieces; nothing else in the folder is touched.
+only along an edge make a non-manifold edge there: see `rllock.core.piece_meshes`). Gap 0 gives the
+exact shape. Exporting into a folder that holds an earlier export replaces that export: piece files of the
+same format that this one does not write (an earlier, larger puzzle's `piece_07.stl` ...) are removed and
+named in the log, so the folder holds exactly this puzzle's pieces; nothing else in the folder is touched.
 
 BurrTools (`.xmpuzzle`, gzip-compressed XML, puzzle format version 2, the brick grid):
   axes          identity: BurrTools' x, y, z are the label grid's x, y, z, and a shape's voxel string

@@ -23,7 +23,7 @@ class SearchConfig:
     """The Luby unit is at least this many expansions per piece to place (`deep_restart_per_piece` in
     deep mode): a deep search needs hundreds of expansions only to walk down once with lookahead."""
     closed_share: float | None = None
-    """Share of the raw chunks drawn by the closed proposal (`compiled_sampler`), which grows chunks
+    """Share of the raw chunks drawn by the closed proposal (`compiled_proposals`), which grows chunks
     that slide out along one direction, so that big pieces are removable; the rest grow uniformly from
     the frontier. None: by piece size n, 0 below `closed_from`, 1/2 up to `closed_only_from`, then 1:
     big pieces grown from the frontier are rarely removable, small ones grow faster that way."""
