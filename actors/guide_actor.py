@@ -7,7 +7,7 @@ reach an assembly.
 The encoded children, their labels and which are siblings go to the replay buffer actor.
 
 Why rollouts: how deep the search happened to go below a state is mostly the search's luck, and a
-network trained on it ordered siblings no better than chance; a child's rollouts mostly agree (all win
+network trained on it orders siblings no better than chance; a child's rollouts mostly agree (all win
 or all lose), so its label is a property of the remainder it leaves.
 """
 
@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,8 +33,8 @@ from rllock.search.restarts import rollout_reach
 from rllock.search.solver import search
 
 # States kept per probe wanted: most states a failing search leaves are dead ends (no child to label),
-# and without spares its probes were mostly those, so that the searches that fail, where labels matter
-# most, gave none.
+# and without spares its probes would mostly be those, so that the searches that fail, where labels
+# matter most, would give none.
 PROBE_CANDIDATES = 8
 
 
@@ -55,6 +55,31 @@ class SearchReport:
     pid: int
     peak_rss_mb: float
     buffer: BufferCounts | None = None
+
+
+@dataclass
+class SearchTotals:
+    """What the searches have done in all, and where `--edge` has moved each cell's K, as every
+    checkpoint keeps it (`orchestration.recorder.Counters`): a resumed run goes on from there."""
+
+    searches: int = 0
+    solved: int = 0
+    guided: int = 0
+    guided_solved: int = 0
+    states: int = 0  # labelled states pushed into the replay buffer
+    edge: dict[str, int] = field(default_factory=dict)  # `--edge`: each cell's K now, by its label
+
+    def add(self, report: SearchReport) -> None:
+        self.searches += 1
+        self.solved += report.solved
+        self.guided += report.guided
+        self.guided_solved += report.guided and report.solved
+        self.states += report.states
+
+    @property
+    def produced(self) -> int:
+        """What the replay ratio divides by."""
+        return self.states
 
 
 class Probes:

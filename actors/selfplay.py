@@ -76,6 +76,29 @@ class PlayStats:
     buffer: BufferCounts | None = None  # the replay buffer's counts once it took the batch
 
 
+@dataclass
+class PlayTotals:
+    """What self-play has played in all, as every checkpoint keeps it (`orchestration.recorder.Counters`):
+    a resumed run goes on counting, and seeds its new actors past the episodes already played."""
+
+    episodes: int = 0
+    successes: int = 0
+    simulations: int = 0
+    transitions: int = 0  # pushed into the replay buffer, as it counted them at the last batch
+
+    def add(self, stats: PlayStats) -> None:
+        self.episodes += stats.episodes
+        self.successes += stats.successes
+        self.simulations += stats.simulations
+        if stats.buffer is not None:
+            self.transitions = stats.buffer.added
+
+    @property
+    def produced(self) -> int:
+        """What the replay ratio divides by."""
+        return self.transitions
+
+
 def evaluate(
     searchers: Sequence[Player],
     params,

@@ -6,14 +6,13 @@ a ring. The learner minimises, with Adam, the binary cross-entropy between the n
 target (`actors.guide_actor`: what the rollouts from the state reached) plus `rank_weight` times a
 sibling loss: for pairs of children of one node with different targets, the cross-entropy of the
 difference of their logits against which target is higher. The search uses the guide to order siblings,
-and the first loss alone learns mostly a node's level (docs/benchmarks.md). Its step is a pure jitted
-function.
+and the value loss alone learns mostly how deep a node is, which does not tell siblings apart. Its step
+is a pure jitted function.
 
 One node in `HOLDOUT` (its children together) is never trained on: `judge` measures on those how often
 the network orders siblings rightly, against the same on nodes it trains on and against the lookahead
-share alone, so that a run shows in TensorBoard whether it learns what carries over or memorises (on
-nodes it never saw, the guides of docs/benchmarks.md ordered siblings at chance while ordering 74% of
-their own buffer's).
+share alone, so that a run shows in TensorBoard whether it learns what carries over or memorises its
+own buffer.
 """
 
 from __future__ import annotations
@@ -310,6 +309,10 @@ class GuideLearner(AdamState):
         """The weights the actors search with and checkpoints keep as the guide."""
         return self.average if self.weight_average else self.params
 
+    @property
+    def weights(self) -> dict:
+        return self.guide
+
     def state(self) -> dict:
         """As `AdamState.state`, with "params" the guide (what `load_guide` reads) and, when averaging,
         the learner's own parameters under "learner_params"."""
@@ -340,3 +343,8 @@ class GuideLearner(AdamState):
             self.average = moving_average(self.average, self.params, self.weight_average)
         self.step += 1
         return float(value), float(rank)
+
+    def learn(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
+        """One step (`update`); returns its losses by TensorBoard tag."""
+        value, rank = self.update(sample)
+        return {"losses/value": value, "losses/siblings": rank}

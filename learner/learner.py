@@ -66,6 +66,11 @@ class AdamState:
         self.params = params
         self.opt_state = self.optimizer.init(params)
 
+    @property
+    def weights(self) -> dict:
+        """The parameters the actors act with."""
+        return self.params
+
     def next_seed(self) -> int:
         """A seed for the next replay sample, from the learner's PRNG key (saved with checkpoints, so a
         resumed run draws the same mini-batches it would have drawn)."""
@@ -130,3 +135,9 @@ class Learner(AdamState):
             )
         self.step += 1
         return {"policy": float(policy), "value": float(value_loss)}
+
+    def learn(self, sample: dict[str, np.ndarray]) -> dict[str, float]:
+        """One step (`update`); returns its losses by TensorBoard tag."""
+        losses = self.update(sample)
+        policy, value = losses["policy"], losses["value"]
+        return {"losses/policy": policy, "losses/value": value, "losses/total": policy + value}

@@ -1,8 +1,9 @@
-"""Pure pacing rules of the actor-learner loop: no Ray, no clocks of their own (times are passed in),
-so each rule is unit-tested in milliseconds."""
+"""Pure pacing rules of the actor-learner loop (`orchestration.loop`), for both trainers: no Ray, no clocks
+of their own (times are passed in), so each rule is unit-tested in milliseconds."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from rllock.config import TrainConfig
@@ -14,11 +15,15 @@ REPORT_EVERY_S = 30.0
 
 @dataclass(frozen=True)
 class Pacing:
+    """When the learner may step. A trainer without a lag limit (its actors take the newest weights at
+    every call) has `max_policy_lag` None; one that learns from data already made has an infinite
+    `replay_ratio`."""
+
     warmup: int
     """Transitions in the buffer before the first step."""
     batch_size: int
     replay_ratio: float
-    max_policy_lag: int
+    max_policy_lag: int | None
     max_learner_steps: int | None
 
     @staticmethod
@@ -38,7 +43,7 @@ class Pacing:
             not self.reached_max(step)
             and transitions >= max(self.warmup, 1)
             and (step + 1) * self.batch_size <= self.replay_ratio * transitions
-            and version - oldest_version < self.max_policy_lag
+            and (self.max_policy_lag is None or version - oldest_version < self.max_policy_lag)
         )
 
     def reached_max(self, step: int) -> bool:
@@ -47,8 +52,8 @@ class Pacing:
 
 @dataclass
 class Schedule:
-    """When periodic work is due (monotonic seconds). The first checkpoint is due as soon as there is a
-    learner step, so a killed run loses little; later ones every `checkpoint_s`."""
+    """When periodic work is due (monotonic seconds). A policy run's first checkpoint is due as soon as
+    there is a learner step, so a killed run loses little; later ones every `checkpoint_s`."""
 
     deadline: float
     checkpoint_s: float
@@ -59,12 +64,33 @@ class Schedule:
 
     @staticmethod
     def start(now: float, config: TrainConfig) -> Schedule:
+        """A policy run's (`rllock train`)."""
+        return Schedule.of(
+            now,
+            minutes=config.minutes,
+            checkpoint_minutes=config.checkpoint_minutes,
+            validate_minutes=config.validate_minutes,
+        )
+
+    @staticmethod
+    def of(
+        now: float,
+        *,
+        minutes: float,
+        checkpoint_minutes: float,
+        validate_minutes: float = math.inf,
+        reserve_s: float = RESERVE_S,
+        checkpoint_first_step: bool = True,
+    ) -> Schedule:
+        """A run of `minutes` from `now` whose work stops `reserve_s` before their end; without
+        `checkpoint_first_step`, the first checkpoint is due `checkpoint_minutes` after `now`."""
         return Schedule(
-            deadline=now + 60 * config.minutes - RESERVE_S,
-            checkpoint_s=60 * config.checkpoint_minutes,
-            validate_s=60 * config.validate_minutes,
-            next_validate=now + 60 * config.validate_minutes,
+            deadline=now + 60 * minutes - reserve_s,
+            checkpoint_s=60 * checkpoint_minutes,
+            validate_s=60 * validate_minutes,
+            next_validate=now + 60 * validate_minutes,
             next_report=now + REPORT_EVERY_S,
+            next_checkpoint=None if checkpoint_first_step else now + 60 * checkpoint_minutes,
         )
 
     def over(self, now: float) -> bool:

@@ -1,21 +1,26 @@
-"""Ray start-up, the self-play layout (how many actors, threads and episodes each), and a pool of
-self-play actors with exactly one batch in flight per actor, shared by the trainer and the bench."""
+"""Ray start-up and the trainers' actors: the self-play layout (how many actors, threads and episodes
+each) and a pool of self-play actors with exactly one batch in flight per actor (shared by `rllock
+train` and the bench), a pool of search actors (`rllock train-guide`) and none at all (a guide taught
+replay snapshots already made). Each has what the loop (`orchestration.loop.Actors`) asks of actors."""
 
 from __future__ import annotations
 
 import logging
 import os
 import socket
+import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
+import jax
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from actors.guide_actor import GuideActor, SearchReport, SearchTotals
 from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, actor_env
-from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
+from rllock.config import GuideTrainConfig, MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.errors import RLLockError
 from rllock.search.workload import Workload
 
@@ -116,6 +121,12 @@ def plan_layout(
     share = min(free / actors, node_cpus or free)
     threads = max(1, int(share))
     return Layout(actors, selfplay.episodes_per_batch, share, threads, threads, 0.0, mode)
+
+
+def publish(params: dict) -> list[ray.ObjectRef]:
+    """A weights version for the actors: [one ObjectRef of the parameters], put in Ray's object store
+    once and fetched by an actor only when its version changed."""
+    return [ray.put(jax.device_get(params))]
 
 
 class Calls:
@@ -236,6 +247,12 @@ class ActorPool:
         for actor in self.actors:
             self.submit(actor, weights, version)
 
+    def publish(self, params: dict) -> list[ray.ObjectRef]:
+        return publish(params)
+
+    def start(self, weights: list, version: int) -> None:
+        self.submit_all(weights, version)
+
     def oldest_version(self) -> int | None:
         """The oldest weights version in flight, of the actors whose node is alive: an actor waiting for
         a node to restart on must not hold the learner back."""
@@ -301,6 +318,85 @@ class ActorPool:
         # ray.kill returns before the actors are gone: wait for the cancelled calls to end, so that a
         # ray.shutdown right after does not race their endings.
         self.calls.settle(settle_s)
+
+    def stop(self) -> None:
+        self.shutdown()
+
+
+class SearchPool:
+    """Search actors (`actors.guide_actor.GuideActor`), one core and one search in flight each: a finished
+    actor is handed its next search with the newest weights and, with `--edge`, each cell's K as the
+    totals hold it; one that failed for good is replaced. A search takes the weights it is handed when it
+    starts, so there is no policy lag to bound."""
+
+    def __init__(self, config: GuideTrainConfig, buffer: Any, totals: SearchTotals):
+        self.config, self.buffer, self.totals = config, buffer, totals
+        self.calls = Calls()  # tagged with the weights version each search was handed
+        self.started = 0
+        self.size = config.actors or max(1, int(ray.cluster_resources().get("CPU", 1)) - 1)
+
+    def publish(self, params: dict) -> list[ray.ObjectRef]:
+        return publish(params)
+
+    def start(self, weights: list, version: int) -> None:
+        for _ in range(self.size):
+            self.submit(self._new_actor(), weights, version)
+        log.info(
+            "training the guide: %d search actor(s) for %g min; logs in %s",
+            self.started,
+            self.config.minutes,
+            self.config.logdir,
+        )
+
+    def _new_actor(self) -> Any:
+        """A new actor, with a seed of its own (a replacement does not repeat its predecessor's searches)."""
+        self.started += 1
+        seed = self.config.seed * 1000 + self.started + self.totals.searches
+        options = dict(
+            num_cpus=1, max_restarts=-1, max_task_retries=-1, runtime_env={"env_vars": actor_env(1)}
+        )
+        return GuideActor.options(**options).remote(seed, self.config)  # type: ignore[attr-defined]
+
+    def submit(self, actor: Any, weights: list, version: int) -> None:
+        edge = dict(self.totals.edge) or None
+        self.calls.submit(actor, actor.run.remote(weights, version, self.buffer, edge), version)
+
+    def collect(self, timeout: float, weights: list) -> list[tuple[Any, SearchReport]]:
+        """The searches finished within `timeout` seconds (at most one wait), with their actors."""
+        done, failed = self.calls.wait(timeout)
+        for _, version, why in failed:
+            log.error("search actor failed for good (%s); a new actor takes its place", why)
+            self.submit(self._new_actor(), weights, version)
+        return [(actor, report) for actor, _, report in done]
+
+    def oldest_version(self) -> int | None:
+        return None
+
+    def stop(self) -> None:
+        self.calls.cancel_all()  # searches under way are dropped: the budget is a hard limit
+
+
+class NoActors:
+    """A trainer without actors: the learner alone, on a replay buffer filled before the run."""
+
+    def publish(self, params: dict) -> list:
+        return []
+
+    def start(self, weights: list, version: int) -> None:
+        pass
+
+    def collect(self, timeout: float, weights: list) -> list[tuple[Any, Any]]:
+        time.sleep(timeout)  # nothing comes: wait as long as a call would have been waited for
+        return []
+
+    def submit(self, actor: Any, weights: list, version: int) -> None:
+        raise AssertionError("no actor to hand a call")
+
+    def oldest_version(self) -> int | None:
+        return None
+
+    def stop(self) -> None:
+        pass
 
 
 def describe_node(node_id: str) -> str:

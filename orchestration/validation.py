@@ -174,9 +174,9 @@ def keep_best(result: Result, learner: Learner, recorder: Recorder, counters: Co
     """Save `learner` as the best checkpoint, with the first valid assembly, when the validation ranks
     above the best so far (`recorder.validation_rank`) or there is no best checkpoint yet; the bar in
     `counters` never drops."""
-    best, rank = (counters.best_rate, counters.best_return), result.score.rank()
-    if rank > best or recorder.best.latest_step() is None:
-        counters.best_rate, counters.best_return = max(rank, best)
+    best, rank = counters.best or (-1.0, -1.0), result.score.rank()
+    if rank > best or not recorder.has_best():
+        counters.best = max(rank, best)
         recorder.best_checkpoint(
             learner.step, learner.state(), result.score.to_json(), counters, assembly(result.first_win)
         )

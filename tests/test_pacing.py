@@ -58,3 +58,12 @@ def test_the_final_validation_gets_its_time_only_when_it_is_a_small_share_of_the
     assert final_reserve(None, config) == 0.0
     assert final_reserve(50.0, config) == 50.0
     assert final_reserve(61.0, config) == 0.0  # over a quarter of 240 s: skipped, training keeps the time
+
+
+def test_a_guide_run_keeps_no_reserve_checkpoints_on_the_clock_and_has_no_lag_limit():
+    s = Schedule.of(100.0, minutes=2.0, checkpoint_minutes=1.0, reserve_s=0.0, checkpoint_first_step=False)
+    assert s.deadline == 220.0 and not s.validation_due(10**9)
+    assert not s.checkpoint_due(101.0, step=1) and s.checkpoint_due(160.0, step=1)
+    pacing = Pacing(warmup=16, batch_size=16, replay_ratio=4.0, max_policy_lag=None, max_learner_steps=None)
+    assert pacing.can_learn(step=0, transitions=16, version=100, oldest_version=0)
+    assert not pacing.can_learn(step=4, transitions=16, version=0, oldest_version=0)

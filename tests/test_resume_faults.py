@@ -168,13 +168,12 @@ def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun_and_the_
     with open(f"{ray_tmp}/ray/ray_current_cluster", "w") as f:
         f.write("127.0.0.1:9")
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | {"RAY_TMPDIR": ray_tmp}
-    # Slow on any machine: 512 episodes once were, but on a fast core they take 1-4 s and fit.
+    # Slow on any machine: a few hundred episodes would fit the budget on a fast core.
     slow = tiny_flags(
         validation_episodes=100_000,
         mcts=MCTSConfig(simulations=32, max_considered=4, raw_samples=256, candidates=8),
     )
-    # Long enough for the first learner steps on a slow CI machine (1 minute, Ray's start included, once
-    # ended there with none).
+    # Long enough for the first learner steps on a slow CI machine, Ray's start included.
     minutes = 1.5
     started = time.monotonic()
     try:

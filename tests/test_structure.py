@@ -91,6 +91,94 @@ def test_the_layer_check_sees_imports_inside_functions(tmp_path):
         path.unlink()
 
 
+def _runs(path: Path, name: str, modules: set[str]) -> set[str]:
+    """The project modules (of `modules`) whose code importing module `name` (at `path`) may run, at module
+    level or inside functions: each module an import names, and the packages above it (their __init__
+    runs first). A package's __init__ importing its own submodules does not import itself."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    named = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            named += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parts, base] if base else parts)
+            named += [base, *(f"{base}.{a.name}" for a in node.names)]  # a name may be a submodule
+    found = {".".join(m.split(".")[:i]) for m in named for i in range(1, m.count(".") + 2)} & modules
+    return found - {name} if path.name == "__init__.py" else found
+
+
+def _import_graph(probes: dict[str, Path] | None = None) -> dict[str, set[str]]:
+    """Every project module and the modules it imports (`_runs`); `probes`: more modules, by name."""
+    files = {_module_name(p): p for package in PACKAGES for p in (ROOT / package).rglob("*.py")}
+    files |= probes or {}
+    return {name: _runs(path, name, set(files)) for name, path in files.items()}
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles of `graph`: its strongly connected components of more than one module (Tarjan),
+    and the modules that import themselves."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = stack[stack.index(v) :]
+            del stack[stack.index(v) :]
+            if len(component) > 1 or v in graph[v]:
+                circles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(circles)
+
+
+def test_no_import_circle_among_the_project_modules():
+    """A circle (even one broken by an import inside a function) means two modules that are one."""
+    assert _circles(_import_graph()) == []
+
+
+def test_the_circle_check_sees_imports_inside_functions_and_package_inits(tmp_path):
+    """Probe modules, named as if they were in the tree but kept out of it (a probe in the tree would be
+    a circle to every other run of the check meanwhile)."""
+    sources = {
+        # a circle closed by an import inside a function
+        "orchestration._probe_a": ("a.py", "from orchestration import _probe_b\n"),
+        "orchestration._probe_b": ("b.py", "def f():\n    from ._probe_a import f\n"),
+        # a module that imports itself through its package
+        "orchestration._probe_self": ("self.py", "def f():\n    from orchestration import _probe_self\n"),
+        # a circle through a package's __init__
+        "orchestration._probe_pkg": ("pkg/__init__.py", "from orchestration._probe_pkg.inner import g\n"),
+        "orchestration._probe_pkg.inner": ("pkg/inner.py", "from orchestration._probe_pkg import h\n"),
+        # no circle: an __init__ importing its own submodule, which imports nothing of the package
+        "orchestration._probe_ok": ("ok/__init__.py", "from . import inner\n"),
+        "orchestration._probe_ok.inner": ("ok/inner.py", "import orchestration.pool\n"),
+    }
+    probes = {}
+    for name, (file, source) in sources.items():
+        probes[name] = tmp_path / file
+        probes[name].parent.mkdir(exist_ok=True)
+        probes[name].write_text(source)
+    assert _circles(_import_graph(probes)) == [
+        ["orchestration._probe_a", "orchestration._probe_b"],
+        ["orchestration._probe_pkg", "orchestration._probe_pkg.inner"],
+        ["orchestration._probe_self"],
+    ]
+
+
 def test_every_folder_says_what_its_layer_is():
     for package in PACKAGES:
         for init in (ROOT / package).rglob("__init__.py"):

@@ -24,7 +24,7 @@ _RUNS: dict[str, tuple] = {}
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     # Kept beyond the fixture: under xdist the worker tore this module fixture down between the module's
-    # tests and trained again (two setups, 30 s and 23 s); the run's folder outlives the teardown.
+    # tests and trained again; the run's folder outlives the teardown.
     if "run" not in _RUNS:
         logdir = tmp_path_factory.mktemp("run")
         ray.init(address="local", num_cpus=2, include_dashboard=False)  # not a cluster left on the machine

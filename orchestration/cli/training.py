@@ -1,5 +1,5 @@
-"""The training commands: `train` (self-play on Ray), `generate` (assemblies from a checkpoint) and
-`pretrained` (the checkpoints shipped by name).
+"""The training commands: `train` (self-play on Ray), `train-guide` (the guide network of `solve
+--guide`), `generate` (assemblies from a checkpoint) and `pretrained` (the checkpoints shipped by name).
 
 `add_commands(subparsers)` adds them to the `rllock` parser; each handler takes the parsed arguments,
 raises RLLockError on bad input and returns the exit status.
