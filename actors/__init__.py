@@ -1,1 +1,2 @@
-"""Self-play: plain worker logic, and the Ray actor that runs it on one CPU core."""
+"""The actors, imported as `rllock.actors`: self-play episodes and guide searches as plain worker logic,
+and the Ray actors that run them, each on one CPU core."""

@@ -60,7 +60,7 @@ class SearchReport:
 @dataclass
 class SearchTotals:
     """What the searches have done in all, and where `--edge` has moved each cell's K, as every
-    checkpoint keeps it (`orchestration.recorder.Counters`): a resumed run goes on from there."""
+    checkpoint keeps it (`rllock.orchestration.recorder.Counters`): a resumed run goes on from there."""
 
     searches: int = 0
     solved: int = 0

@@ -78,8 +78,9 @@ class PlayStats:
 
 @dataclass
 class PlayTotals:
-    """What self-play has played in all, as every checkpoint keeps it (`orchestration.recorder.Counters`):
-    a resumed run goes on counting, and seeds its new actors past the episodes already played."""
+    """What self-play has played in all, as every checkpoint keeps it
+    (`rllock.orchestration.recorder.Counters`): a resumed run goes on counting, and seeds its new actors past
+    the episodes already played."""
 
     episodes: int = 0
     successes: int = 0

@@ -20,8 +20,8 @@ from pathlib import Path
 # importable even where the node has no editable install of it.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestration.cli.main import main  # noqa: E402
 from rllock.config import TrainConfig  # noqa: E402
+from rllock.orchestration.cli.main import main  # noqa: E402
 
 # Ray Jobs sets this in the environment of the job's entry point.
 JOB_ENV = "RAY_JOB_CONFIG_JSON_ENV_VAR"

@@ -14,7 +14,7 @@ trap 'git worktree remove --force "$tmp/base" >/dev/null 2>&1 || true; rm -rf "$
 git worktree add --detach "$tmp/base" "$base" >/dev/null 2>&1
 head_dir="$(pwd)"
 # The command line moved from rllock/cli.py to orchestration/cli/ (commit 12db2f3): run each tree's own.
-cli_of() { if [ -f "$1/orchestration/cli/__main__.py" ]; then echo orchestration.cli; else echo rllock.cli; fi; }
+cli_of() { if [ -f "$1/orchestration/cli/__main__.py" ]; then echo rllock.orchestration.cli; else echo rllock.cli; fi; }
 for i in $(seq "$rounds"); do
   (cd "$tmp/base" && PYTHONPATH="$tmp/base" "$head_dir/.venv/bin/python" -m "$(cli_of "$tmp/base")" \
     bench "$bench" "$@" --json) > "$tmp/base_$i.json"

@@ -30,7 +30,7 @@ def run(tree: Path) -> tuple[float, float]:
         [
             py,
             "-m",
-            "orchestration.cli",
+            "rllock.orchestration.cli",
             "generate",
             "--checkpoint",
             "cube4-k7",

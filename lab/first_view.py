@@ -25,7 +25,7 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import WebDriverWait
 
-from orchestration.bench.serve import ServerProcess
+from rllock.orchestration.bench.serve import ServerProcess
 
 
 def first_view_ms(driver: webdriver.Chrome, url: str) -> float:

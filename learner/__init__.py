@@ -1,1 +1,2 @@
-"""The JAX learner: replay buffer, update step, checkpoints and TensorBoard logging."""
+"""The JAX learners, imported as `rllock.learner`: the policy-value learner and the guide's learner, their
+replay buffers, update steps and snapshots."""

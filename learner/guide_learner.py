@@ -3,7 +3,7 @@
 The buffer holds encoded search states (`rllock.search.guide.encode`: a window and features, both of a
 fixed size whatever the shape) with their value targets and sibling group (the children of one node), in
 a ring. The learner minimises, with Adam, the binary cross-entropy between the network's value and the
-target (`actors.guide_actor`: what the rollouts from the state reached) plus `rank_weight` times a
+target (`rllock.actors.guide_actor`: what the rollouts from the state reached) plus `rank_weight` times a
 sibling loss: for pairs of children of one node with different targets, the cross-entropy of the
 difference of their logits against which target is higher. The search uses the guide to order siblings,
 and the value loss alone learns mostly how deep a node is, which does not tell siblings apart. Its step
@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from learner.learner import AdamState
 from rllock.config import GuideConfig
 from rllock.errors import RLLockError
+from rllock.learner.learner import AdamState
 from rllock.process import peak_rss_mb
 from rllock.search.base import BufferCounts
 from rllock.search.guide import CHANNELS, GLOBALS, PAD, GuideNet, guide_values, init_guide

@@ -1,12 +1,13 @@
 """The trainers' builder (acme's builder is the model): a trainer's config becomes the parts the one
-actor-learner loop (`orchestration.loop`) runs, and `run` runs them. The trainers differ only in these
+actor-learner loop (`rllock.orchestration.loop`) runs, and `run` runs them. The trainers differ only in these
 parts and their config:
 
-  rllock train        self-play actors (`pool.ActorPool`) -> transitions (`learner.replay.ReplayBuffer`)
-                      -> the policy-value learner (`learner.learner.Learner`), fresh, resumed or started
-                      from another run's network
+  rllock train        self-play actors (`pool.ActorPool`) -> transitions
+                      (`rllock.learner.replay.ReplayBuffer`) -> the policy-value learner
+                      (`rllock.learner.learner.Learner`), fresh, resumed or started from another run's
+                      network
   rllock train-guide  search actors (`pool.SearchPool`) -> labelled states
-                      (`learner.guide_learner.GuideBuffer`) -> the guide's learner (`GuideLearner`);
+                      (`rllock.learner.guide_learner.GuideBuffer`) -> the guide's learner (`GuideLearner`);
                       with --replay-from, no actors: the states of snapshots already made, in this process
 
 Both keep their replay buffer in a Ray actor on the driver's node (it snapshots into the run's folder)
@@ -28,15 +29,23 @@ import jax
 import ray
 from ray.exceptions import RayTaskError
 
-from actors.guide_actor import SearchTotals
-from actors.selfplay import PlayTotals
-from learner.guide_learner import GuideBuffer, GuideLearner
-from learner.learner import Learner
-from learner.replay import ReplayBuffer
-from orchestration.guide_offline import load_pool
-from orchestration.loop import Actors, Learning, Loop, M, Replay, System
-from orchestration.pacing import Pacing, Schedule
-from orchestration.pool import (
+from rllock.actors.guide_actor import SearchTotals
+from rllock.actors.selfplay import PlayTotals
+from rllock.config import GuideTrainConfig, TrainConfig
+from rllock.core.env import Task, make_task
+from rllock.core.feasibility import check_feasible
+from rllock.core.identity import check_same_task
+from rllock.core.tasks import parse_tasks
+from rllock.errors import RLLockError
+from rllock.files import checkpoint as ckpt
+from rllock.files.orbax_io import restore_like
+from rllock.learner.guide_learner import GuideBuffer, GuideLearner
+from rllock.learner.learner import Learner
+from rllock.learner.replay import ReplayBuffer
+from rllock.orchestration.guide_offline import load_pool
+from rllock.orchestration.loop import Actors, Learning, Loop, M, Replay, System
+from rllock.orchestration.pacing import Pacing, Schedule
+from rllock.orchestration.pool import (
     ActorPool,
     NoActors,
     SearchPool,
@@ -48,17 +57,9 @@ from orchestration.pool import (
     plan_layout,
     start_ray,
 )
-from orchestration.recorder import Counters, Recorder, best_rank, totals_of
-from orchestration.stopping import StopRequest, stop_on_signals
-from orchestration.validation import Score
-from rllock.config import GuideTrainConfig, TrainConfig
-from rllock.core.env import Task, make_task
-from rllock.core.feasibility import check_feasible
-from rllock.core.identity import check_same_task
-from rllock.core.tasks import parse_tasks
-from rllock.errors import RLLockError
-from rllock.files import checkpoint as ckpt
-from rllock.files.orbax_io import restore_like
+from rllock.orchestration.recorder import Counters, Recorder, best_rank, totals_of
+from rllock.orchestration.stopping import StopRequest, stop_on_signals
+from rllock.orchestration.validation import Score
 from rllock.search.curriculum import named_tasks
 from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import read_guide_metadata

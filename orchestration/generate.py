@@ -14,9 +14,9 @@ from pathlib import Path
 import jax
 import ray
 
-from actors.selfplay import actor_env
-from orchestration.pool import Calls, start_ray
+from rllock.actors.selfplay import actor_env
 from rllock.files.assembly import PictureWriter
+from rllock.orchestration.pool import Calls, start_ray
 from rllock.search.inference import Collector, GenerateResult, Policy, play_round, searchers_for
 
 log = logging.getLogger(__name__)

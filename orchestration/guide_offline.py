@@ -2,10 +2,10 @@
 
 Searches are what a guide run spends its time on; the learner's steps are cheap. So a guide can be taught
 again, without searching, on every state of one or more runs' snapshots at once (`load_pool`: the
-learner alone, in one process, `orchestration.builder.OfflineGuideBuilder`), and a run's snapshot can be
-kept apart from its run (`keep_snapshot`) with a record of what made it. Each checkpoint of such a
-training records the snapshots it learned from (path, states, SHA-256, the sessions that made them), so
-that a shipped guide names its data and a resume can check it goes on on the same states.
+learner alone, in one process, `rllock.orchestration.builder.OfflineGuideBuilder`), and a run's snapshot can
+be kept apart from its run (`keep_snapshot`) with a record of what made it. Each checkpoint of such a training
+records the snapshots it learned from (path, states, SHA-256, the sessions that made them), so that a shipped
+guide names its data and a resume can check it goes on on the same states.
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import hashlib
 import json
 from pathlib import Path
 
-from learner.guide_learner import GuideBuffer, pool, read_snapshot, write_snapshot
 from rllock.config import GuideTrainConfig
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files.provenance import portable, portable_sessions
+from rllock.learner.guide_learner import GuideBuffer, pool, read_snapshot, write_snapshot
 from rllock.search.guide import channels
 from rllock.search.guide_checkpoint import read_guide_metadata
 

@@ -1,15 +1,15 @@
-"""`rllock train-guide`: the guide network trained by the actor-learner loop (`orchestration.loop`).
+"""`rllock train-guide`: the guide network trained by the actor-learner loop (`rllock.orchestration.loop`).
 
-Search actors (`actors.guide_actor`) each run the search solver on a curriculum task with the latest
+Search actors (`rllock.actors.guide_actor`) each run the search solver on a curriculum task with the latest
 weights version and push the children of a few states it left, labelled by rollouts, into the replay
-buffer actor (`learner.guide_learner.GuideBuffer`); this process learns from the buffer (at most
+buffer actor (`rllock.learner.guide_learner.GuideBuffer`); this process learns from the buffer (at most
 `replay_ratio` sampled states per state produced), hands out a new weights version every
 `publish_every` steps, writes TensorBoard events (with, at each checkpoint, how well it orders the
-siblings of nodes held out of training: `learner.guide_learner.judge`) and keeps:
+siblings of nodes held out of training: `rllock.learner.guide_learner.judge`) and keeps:
   LOGDIR/checkpoints/<step>/  the latest checkpoints (orbax: learner state + metadata)
   LOGDIR/replay.npz           the replay buffer, snapshotted with every checkpoint
 With --replay-from it learns without searching, on the states of replay snapshots already made
-(`orchestration.guide_offline`), judging every JUDGE_EVERY steps too. `--minutes` is a hard budget
+(`rllock.orchestration.guide_offline`), judging every JUDGE_EVERY steps too. `--minutes` is a hard budget
 (searches under way at its end are dropped). `rllock train-guide --resume LOGDIR` continues from the
 newest readable checkpoint with its config, optimizer state, PRNG key, counters and replay buffer.
 Ctrl-C and SIGTERM stop cleanly with a final checkpoint.
@@ -25,13 +25,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from actors.guide_actor import SearchReport
-from learner.guide_learner import judge
-from orchestration.builder import GuideBuilder, OfflineGuideBuilder, run
-from orchestration.loop import System
-from orchestration.recorder import Recorder
+from rllock.actors.guide_actor import SearchReport
 from rllock.config import GuideConfig, GuideTrainConfig, from_json
 from rllock.files import checkpoint as ckpt
+from rllock.learner.guide_learner import judge
+from rllock.orchestration.builder import GuideBuilder, OfflineGuideBuilder, run
+from rllock.orchestration.loop import System
+from rllock.orchestration.recorder import Recorder
 from rllock.search.curriculum import edge_pieces
 from rllock.search.guide_checkpoint import read_guide_metadata
 
@@ -92,8 +92,8 @@ def judge_nodes(
     params: dict, config: GuideConfig, nodes_of: Callable[[bool], dict], recorder: Recorder, step: int
 ) -> None:
     """How well the network orders siblings on nodes it never trained on, against nodes it trained on
-    and against the lookahead share alone (`learner.guide_learner.judge`; `nodes_of(True)` gives held-out
-    nodes, `nodes_of(False)` trained-on ones), in TensorBoard and the log."""
+    and against the lookahead share alone (`rllock.learner.guide_learner.judge`; `nodes_of(True)` gives
+    held-out nodes, `nodes_of(False)` trained-on ones), in TensorBoard and the log."""
     found = {}
     for name, kept_out in (("heldout", True), ("trained", False)):
         nodes = nodes_of(kept_out)
@@ -114,7 +114,7 @@ def judge_nodes(
 
 
 class SearchWatch:
-    """What a guide run watches beside the loop (`orchestration.loop.Monitor`): each search, in the log
+    """What a guide run watches beside the loop (`rllock.orchestration.loop.Monitor`): each search, in the log
     and TensorBoard, the K `--edge` moves, and the judgement of the guide at every checkpoint (and, taught
     snapshots `offline`, every JUDGE_EVERY learner steps)."""
 

@@ -7,7 +7,7 @@ weights, and takes a learner step when `Pacing` allows: data enough, under the r
 the trainer bounds it) no call in flight too many versions behind. Every `publish_every` steps the weights
 are a new version. Checkpoints (the replay buffer's snapshot with them) come as `Schedule` says, and a
 final one unless the last one already holds everything. `--minutes` is a hard budget: calls under way at
-its end are dropped. What the trainers differ in is built by `orchestration.builder` (the actors, the
+its end are dropped. What the trainers differ in is built by `rllock.orchestration.builder` (the actors, the
 learner, the buffer and the rules from their config); what each watches beside this loop (validations,
 judgements, its log lines and charts) is its `Monitor`.
 """
@@ -21,15 +21,15 @@ from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 
-from orchestration.pacing import Pacing, Schedule
-from orchestration.recorder import Counters, Recorder
-from orchestration.stopping import StopRequest
+from rllock.orchestration.pacing import Pacing, Schedule
+from rllock.orchestration.recorder import Counters, Recorder
+from rllock.orchestration.stopping import StopRequest
 
 LOSSES_EVERY = 10  # learner steps between the losses written to TensorBoard (and the first step's)
 
 
 class Learning(Protocol):
-    """A learner (`learner.learner.Learner`, `learner.guide_learner.GuideLearner`)."""
+    """A learner (`rllock.learner.learner.Learner`, `rllock.learner.guide_learner.GuideLearner`)."""
 
     step: int
 
@@ -60,7 +60,7 @@ class Replay(Protocol):
 
 
 class Actors(Protocol):
-    """A trainer's actors (`orchestration.pool`), one call in flight each."""
+    """A trainer's actors (`rllock.orchestration.pool`), one call in flight each."""
 
     def publish(self, params: dict) -> list:
         """A weights version as the actors fetch it."""
@@ -115,7 +115,7 @@ class Monitor(Protocol):
 
 @dataclass
 class System:
-    """A trainer as `orchestration.builder` built it: what the loop runs."""
+    """A trainer as `rllock.orchestration.builder` built it: what the loop runs."""
 
     learner: Learning
     buffer: Replay

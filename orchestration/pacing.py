@@ -1,5 +1,5 @@
-"""Pure pacing rules of the actor-learner loop (`orchestration.loop`), for both trainers: no Ray, no clocks
-of their own (times are passed in), so each rule is unit-tested in milliseconds."""
+"""Pure pacing rules of the actor-learner loop (`rllock.orchestration.loop`), for both trainers: no Ray, no
+clocks of their own (times are passed in), so each rule is unit-tested in milliseconds."""
 
 from __future__ import annotations
 

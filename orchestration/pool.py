@@ -1,7 +1,7 @@
 """Ray start-up and the trainers' actors: the self-play layout (how many actors, threads and episodes
 each) and a pool of self-play actors with exactly one batch in flight per actor (shared by `rllock
 train` and the bench), a pool of search actors (`rllock train-guide`) and none at all (a guide taught
-replay snapshots already made). Each has what the loop (`orchestration.loop.Actors`) asks of actors."""
+replay snapshots already made). Each has what the loop (`rllock.orchestration.loop.Actors`) asks of actors."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from actors.guide_actor import GuideActor, SearchReport, SearchTotals
-from actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, actor_env
+from rllock.actors.guide_actor import GuideActor, SearchReport, SearchTotals
+from rllock.actors.selfplay import PlaySpec, PlayStats, SelfPlayActor, actor_env
 from rllock.config import GuideTrainConfig, MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.errors import RLLockError
 from rllock.search.workload import Workload
@@ -324,8 +324,8 @@ class ActorPool:
 
 
 class SearchPool:
-    """Search actors (`actors.guide_actor.GuideActor`), one core and one search in flight each: a finished
-    actor is handed its next search with the newest weights and, with `--edge`, each cell's K as the
+    """Search actors (`rllock.actors.guide_actor.GuideActor`), one core and one search in flight each: a
+    finished actor is handed its next search with the newest weights and, with `--edge`, each cell's K as the
     totals hold it; one that failed for good is replaced. A search takes the weights it is handed when it
     starts, so there is no policy lag to bound."""
 

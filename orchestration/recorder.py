@@ -29,8 +29,8 @@ log = logging.getLogger(__name__)
 
 
 class Totals(Protocol):
-    """What a trainer's actors have reported in all (`actors.selfplay.PlayTotals`,
-    `actors.guide_actor.SearchTotals`): a dataclass, whose fields every checkpoint keeps."""
+    """What a trainer's actors have reported in all (`rllock.actors.selfplay.PlayTotals`,
+    `rllock.actors.guide_actor.SearchTotals`): a dataclass, whose fields every checkpoint keeps."""
 
     __dataclass_fields__: ClassVar[dict[str, Any]]
 

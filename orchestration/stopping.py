@@ -1,6 +1,6 @@
 """A training run's stop on a signal: Ctrl-C (SIGINT) and SIGTERM (`kill`, `ray job stop`, a scheduler)
 ask the run to stop after a final checkpoint; a second signal aborts at once. The actor-learner loop
-(`orchestration.loop`) polls it for both trainers."""
+(`rllock.orchestration.loop`) polls it for both trainers."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """`rllock train`: self-play actors on Ray, a replay buffer actor, and the JAX learner in this process,
-run by the actor-learner loop (`orchestration.loop`) with the parts `orchestration.builder` makes.
+run by the actor-learner loop (`rllock.orchestration.loop`) with the parts `rllock.orchestration.builder`
+makes.
 
 Each actor plays a lockstep batch of episodes with the weights version it was handed, pushes the episodes
 into the replay buffer actor and returns its statistics; the learner stops publishing while the oldest
@@ -24,15 +25,15 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from actors.selfplay import PlayStats, PlayTotals
-from orchestration import validation
-from orchestration.builder import SelfPlayBuilder, run
-from orchestration.loop import System
-from orchestration.pacing import final_reserve
-from orchestration.pool import NodeWatch
-from orchestration.stopping import signal_name
-from orchestration.validation import Score
+from rllock.actors.selfplay import PlayStats, PlayTotals
 from rllock.config import TrainConfig
+from rllock.orchestration import validation
+from rllock.orchestration.builder import SelfPlayBuilder, run
+from rllock.orchestration.loop import System
+from rllock.orchestration.pacing import final_reserve
+from rllock.orchestration.pool import NodeWatch
+from rllock.orchestration.stopping import signal_name
+from rllock.orchestration.validation import Score
 from rllock.process import peak_rss_mb
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,7 @@ class Progress:
 
 
 class SelfPlayWatch:
-    """What a policy run watches beside the loop (`orchestration.loop.Monitor`): self-play's progress,
+    """What a policy run watches beside the loop (`rllock.orchestration.loop.Monitor`): self-play's progress,
     the cluster's nodes, charts and a log line every 30 s, and validations on schedule when the budget
     has room for them (the final one's time kept at the end)."""
 

@@ -17,13 +17,13 @@ from dataclasses import dataclass, replace
 import jax
 import numpy as np
 
-from actors.selfplay import evaluate
-from learner.learner import Learner
-from orchestration.pacing import validation_estimate
-from orchestration.pool import Layout
-from orchestration.recorder import Counters, Recorder, validation_rank
+from rllock.actors.selfplay import evaluate
 from rllock.config import TrainConfig
 from rllock.core.env import Task, final_labels
+from rllock.learner.learner import Learner
+from rllock.orchestration.pacing import validation_estimate
+from rllock.orchestration.pool import Layout
+from rllock.orchestration.recorder import Counters, Recorder, validation_rank
 from rllock.search.base import Episode, Player
 from rllock.search.methods import players
 from rllock.search.workload import Workload

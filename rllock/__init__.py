@@ -21,7 +21,7 @@ topology, the reference and the compiled checkers, the environment, the verifier
 `rllock.files` (assembly files, checkpoints, export, pictures); `rllock.search` (the network, MCTS, the
 solver, inference, shipped checkpoints). The packages `actors` and `learner` build on the library,
 `orchestration` (the training loop, the Ray actor pool, generation on Ray) sits above them, and the
-command line (`orchestration.cli`) and the benches (`orchestration.bench`) above everything.
+command line (`rllock.orchestration.cli`) and the benches (`rllock.orchestration.bench`) above everything.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ command line can build its parser, and tests their settings, without loading the
 A training run has one `TrainConfig`, which nests the network, search, learner and self-play configs;
 it is saved once, in every checkpoint's metadata, and that document is what both `--resume` and
 `generate` read. The command line's flags are generated from these dataclasses
-(`orchestration.cli.flags`), one flag per leaf field, with the field docstrings below as their help.
+(`rllock.orchestration.cli.flags`), one flag per leaf field, with the field docstrings below as their help.
 """
 
 from __future__ import annotations
@@ -349,7 +349,7 @@ class GuideTrainConfig:
     share of the pieces left that they place (an assembly 1), which still tells siblings apart where
     every rollout fails."""
     rank_weight: float = 0.0
-    """The weight of the sibling loss beside the value loss (`learner.guide_learner`): how much the
+    """The weight of the sibling loss beside the value loss (`rllock.learner.guide_learner`): how much the
     network learns to order the children of one node, which is what the search asks of it. Off by
     default: on what 30 minutes on 2 cores label, it overfits sooner than the value loss alone."""
     min_voxels: int = 100

@@ -3,7 +3,7 @@ machine that made them.
 
 Writes OUT (a compressed copy of RUN/replay.npz) and OUT with .json beside it (the run's config, counters
 and sessions: command, commit, machine, date). `rllock train-guide --replay-from OUT,...` trains on it and
-records that record in the guide's metadata (`orchestration.guide_offline`).
+records that record in the guide's metadata (`rllock.orchestration.guide_offline`).
 
     python scripts/keep_replay.py runs/guide-mario-f data/replay/mario-f.npz
 """
@@ -14,8 +14,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from orchestration.guide_offline import keep_snapshot
 from rllock.errors import RLLockError
+from rllock.orchestration.guide_offline import keep_snapshot
 
 log = logging.getLogger("keep_replay")
 

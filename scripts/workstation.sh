@@ -35,14 +35,14 @@ timeout "$(left)" "$PY" -m rllock.core.precompile >"$out/precompile.log" 2>&1
 echo "precompile: exit $?, $(left) s left"
 
 # The scaling table first: its figures are the workstation's alone; it may take half of what is left.
-timeout $(($(left) / 2)) "$PY" -m orchestration.cli bench scaling --preset workstation --json "$@" \
+timeout $(($(left) / 2)) "$PY" -m rllock.orchestration.cli bench scaling --preset workstation --json "$@" \
   >"$out/scaling.json" 2>"$out/scaling.log"
 echo "scaling: exit $?, $(left) s left"
 
 # The guide's training until a minute before the deadline (Ray's start, the last checkpoint and the
 # packing fit in it); the flags of the notebook's 2-core runs, on every core.
 minutes=$(awk -v s="$(left)" 'BEGIN { printf "%.2f", (s - 50) / 60 }')
-timeout $(($(left) - 15)) "$PY" -m orchestration.cli train-guide --minutes "$minutes" --logdir /tmp/guide-ws \
+timeout $(($(left) - 15)) "$PY" -m rllock.orchestration.cli train-guide --minutes "$minutes" --logdir /tmp/guide-ws \
   --search-seconds 5 --max-voxels 1000 --max-pieces 80 --replay-ratio 100 --batch-size 128 \
   --publish-every 50 --checkpoint-minutes 1 --buffer-capacity 200000 --label reach --max-left 30 \
   >"$out/train-guide.log" 2>&1

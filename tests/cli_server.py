@@ -1,6 +1,6 @@
 """The `rllock` command for the tests, its imports paid once: a process that imports the command and the
 libraries it loads (seconds on a busy machine, longer than most bad-input checks take), then for
-each request forks a child that is the command, `python -m orchestration.cli ARGS` from the import on:
+each request forks a child that is the command, `python -m rllock.orchestration.cli ARGS` from the import on:
 its own process, its own stdin (empty), stdout and stderr (files), working folder and exit status, and
 an uncaught exception ends it with a traceback and status 1, as the interpreter does. `tests/helpers.py`
 (`run_cli`) starts one per pytest worker.
@@ -34,7 +34,7 @@ def _child(request: dict) -> None:
     # The server's stdin buffer holds the next requests, not the command's input.
     sys.stdin = open(0, closefd=False)
     os.chdir(request["cwd"])
-    from orchestration.cli.main import main
+    from rllock.orchestration.cli.main import main
 
     sys.argv = [request["entry"], *request["args"]]
     sys.exit(main(request["args"]))
@@ -59,10 +59,11 @@ def serve() -> None:
     import optax  # noqa: F401
     import orbax.checkpoint  # noqa: F401
 
-    import orchestration.cli.main  # noqa: F401
+    import rllock.orchestration.cli.main  # noqa: F401
 
-    # What `python -m orchestration.cli` puts in sys.argv[0] (found, not imported: importing it runs it).
-    entry = importlib.util.find_spec("orchestration.cli.__main__").origin  # type: ignore[union-attr]
+    # What `python -m rllock.orchestration.cli` puts in sys.argv[0] (found, not imported: importing it runs
+    # it).
+    entry = importlib.util.find_spec("rllock.orchestration.cli.__main__").origin  # type: ignore[union-attr]
     reply = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)  # a library's stray print must not end up in the replies
     print("ready", file=reply, flush=True)

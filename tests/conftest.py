@@ -50,7 +50,7 @@ def cluster(monkeypatch) -> Iterator[tuple]:
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     from ray.cluster_utils import Cluster
 
-    from orchestration.bench.serve import free_port
+    from rllock.orchestration.bench.serve import free_port
 
     port = free_port()
     head = {

@@ -53,10 +53,10 @@ def save_run(run, shape: str, pieces: int, *, net, mcts, method: str = "rl-lock"
     (params, optimizer state, provenance); returns the learner."""
     import jax
 
-    from learner.learner import Learner, LearnerConfig
     from rllock.files import checkpoint as ckpt
     from rllock.files import orbax_io
     from rllock.files.provenance import provenance
+    from rllock.learner.learner import Learner, LearnerConfig
     from rllock.search.workload import SingleTask
 
     task = make_task(shape, pieces)
@@ -75,11 +75,11 @@ def save_multitask_run(run, spec: str, *, net, mcts, step: int = 5):
     learner; returns the learner."""
     import jax
 
-    from learner.learner import Learner, LearnerConfig
     from rllock.core.tasks import parse_tasks
     from rllock.files import checkpoint as ckpt
     from rllock.files import orbax_io
     from rllock.files.provenance import provenance
+    from rllock.learner.learner import Learner, LearnerConfig
     from rllock.search.workload import ManyTasks
 
     tasks = parse_tasks(spec, canvas=net.canvas)
@@ -147,7 +147,7 @@ TINY = TrainConfig(
 def tiny_flags(config: TrainConfig = TINY, **changes) -> list[str]:
     """`rllock train` flags that give `config` (top-level fields replaced by `changes`), leaving out
     --logdir and --minutes, which each test sets."""
-    from orchestration.cli.flags import leaves
+    from rllock.orchestration.cli.flags import leaves
 
     config = dataclasses.replace(config, **changes)
     flags = []
@@ -219,8 +219,8 @@ def _environment() -> dict[str, str]:
 
 
 def run_cli(*args: str, timeout: float = 300) -> tuple[int, str, str]:
-    """Run the `rllock` command (`python -m orchestration.cli ARGS`) as a process of its own: (exit code,
-    stdout, stderr). Forked from `tests/cli_server.py`, which has imported it already, unless the
+    """Run the `rllock` command (`python -m rllock.orchestration.cli ARGS`) as a process of its own: (exit
+    code, stdout, stderr). Forked from `tests/cli_server.py`, which has imported it already, unless the
     command starts processes (`FRESH_FLAGS`); a server is started again for a changed environment."""
     if not FRESH_FLAGS.isdisjoint(args):
         return _fresh_cli(args, timeout)
@@ -233,7 +233,10 @@ def run_cli(*args: str, timeout: float = 300) -> tuple[int, str, str]:
 
 def _fresh_cli(args: tuple[str, ...], timeout: float) -> tuple[int, str, str]:
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestration.cli", *args], capture_output=True, text=True, timeout=timeout
+        [sys.executable, "-m", "rllock.orchestration.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
     return proc.returncode, proc.stdout, proc.stderr
 

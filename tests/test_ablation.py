@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from helpers import run_cli, save_run
 
-from orchestration.bench.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
 from rllock.errors import RLLockError
+from rllock.orchestration.bench.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
 from rllock.search.mcts import MCTSConfig
 from rllock.search.network import NetConfig
 

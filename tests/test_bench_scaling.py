@@ -8,7 +8,7 @@ import json
 import pytest
 from helpers import run_cli
 
-from orchestration.bench.scaling import PRESETS, fit_to_machine
+from rllock.orchestration.bench.scaling import PRESETS, fit_to_machine
 
 
 def test_the_plan_fits_the_machine_it_runs_on():

@@ -104,7 +104,7 @@ def test_solve_refuses_an_output_folder_with_results(tmp_path):
 
 
 def test_train_switches_parse_both_ways():
-    from orchestration.cli.main import build_parser
+    from rllock.orchestration.cli.main import build_parser
 
     parser = build_parser()
     assert parser.parse_args(["train", "--shape", "cube4", "--pieces", "6"]).symmetries is True
@@ -115,7 +115,7 @@ def test_train_switches_parse_both_ways():
 
 
 def test_learning_ratio_and_its_bound_when_the_baseline_finds_nothing():
-    from orchestration.bench.learning import learning_ratio
+    from rllock.orchestration.bench.learning import learning_ratio
 
     assert learning_ratio(10.0, 40.0, 200.0) == (0.25, None)
     assert learning_ratio(30.0, None, 300.0) == (None, 0.1)  # untrained: none in 300 s
@@ -210,7 +210,7 @@ def test_removal_alone_names_the_checkpoints_own_task():
 
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf", "0", "-3"])
 def test_time_limit_must_be_positive_and_finite(tmp_path, value):
-    from orchestration.cli.common import positive_float
+    from rllock.orchestration.cli.common import positive_float
 
     with pytest.raises(argparse.ArgumentTypeError, match="positive finite"):
         positive_float(value)
@@ -222,15 +222,15 @@ def test_time_limit_must_be_positive_and_finite(tmp_path, value):
 
 
 def test_time_limit_takes_a_positive_number():
-    from orchestration.cli.common import positive_float
+    from rllock.orchestration.cli.common import positive_float
 
     assert positive_float("2.5") == 2.5
 
 
 def test_the_forked_command_answers_as_a_fresh_interpreter_does(data, tmp_path, monkeypatch):
     """`run_cli` forks the command from a process that imported it (`tests/cli_server.py`): the same
-    exit status, stdout and stderr as `python -m orchestration.cli` in a new interpreter, also where the
-    command reads its working folder."""
+    exit status, stdout and stderr as `python -m rllock.orchestration.cli` in a new interpreter, also where
+    the command reads its working folder."""
     (tmp_path / "bad.json").write_text("{not json")
     cube = str(data / "published" / "Cube_4x4x4_K9.puz")
     monkeypatch.chdir(tmp_path)
@@ -261,8 +261,8 @@ class _Shares:
 
 def test_every_commands_help_prints_with_its_flags_docs_as_written():
     """argparse formats help strings with %: a config docstring's "2%" broke `train-guide --help`."""
-    from orchestration.cli.flags import add_flags
-    from orchestration.cli.main import build_parser
+    from rllock.orchestration.cli.flags import add_flags
+    from rllock.orchestration.cli.main import build_parser
 
     helps = {name: parser.format_help() for name, parser in _parsers(build_parser())}
     assert {"rllock solve", "rllock train-guide", "rllock bench guide"} <= set(helps)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestration.cli.main import build_parser, reference
+from rllock.orchestration.cli.main import build_parser, reference
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,7 +14,6 @@ import pytest
 import trimesh
 from helpers import run_cli
 
-from orchestration.cli.assemblies import add_commands
 from rllock.core.piece_meshes import piece_volume
 from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
 from rllock.core.shapes import from_xfastest, read_puz_labels
@@ -22,6 +21,7 @@ from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files.assembly import write_assembly
 from rllock.files.export import PRINT_GAP, write_meshes
+from rllock.orchestration.cli.assemblies import add_commands
 
 
 @pytest.fixture(scope="module")

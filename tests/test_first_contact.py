@@ -25,7 +25,7 @@ FILES = {"assembly.json", "assembly.puz", "assembly.png"}
 def _interrupt_after(args: list[str], out: Path, folders: int, timeout: float = 240):
     """Start `rllock ARGS`, send Ctrl-C once `folders` assembly folders exist; (code, stdout, stderr)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "orchestration.cli", *args],
+        [sys.executable, "-m", "rllock.orchestration.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -164,7 +164,7 @@ def test_the_search_reports_its_progress_while_it_runs(monkeypatch):
 
 @pytest.mark.parametrize("command", ["solve", "generate"])
 def test_help_shows_the_defaults(command):
-    from orchestration.cli.main import build_parser
+    from rllock.orchestration.cli.main import build_parser
 
     sub = build_parser()._subparsers._group_actions[0].choices[command]  # type: ignore[union-attr]
     text = sub.format_help()
@@ -174,7 +174,7 @@ def test_help_shows_the_defaults(command):
 
 
 def test_advice_names_general_only_where_it_can_generate():
-    from orchestration.cli.longwork import advice, general_serves
+    from rllock.orchestration.cli.longwork import advice, general_serves
 
     fits, too_big, path = make_task("cube5", 13), make_task("box:17x2x2", 4), make_task("cube5", 13, "path")
     assert general_serves(fits) and not general_serves(too_big) and not general_serves(path)

@@ -20,8 +20,15 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
-from actors.guide_actor import Probes, label_children, run_search, value_target
-from learner.guide_learner import (
+from rllock.actors.guide_actor import Probes, label_children, run_search, value_target
+from rllock.config import GuideConfig, GuideTrainConfig, to_json
+from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
+from rllock.core.feasibility import impossibility
+from rllock.core.verifier import verify_labels
+from rllock.errors import RLLockError
+from rllock.files import orbax_io
+from rllock.files.checkpoint import saved_steps
+from rllock.learner.guide_learner import (
     SHARE,
     SIBLINGS_WITHIN,
     GuideBuffer,
@@ -31,13 +38,6 @@ from learner.guide_learner import (
     sibling_order,
     siblings,
 )
-from rllock.config import GuideConfig, GuideTrainConfig, to_json
-from rllock.core.env import State, apply_chunk, initial_state, make_task, sample_accepted
-from rllock.core.feasibility import impossibility
-from rllock.core.verifier import verify_labels
-from rllock.errors import RLLockError
-from rllock.files import orbax_io
-from rllock.files.checkpoint import saved_steps
 from rllock.search.base import derive_seed
 from rllock.search.curriculum import blob, draw_task, edge_pieces, named_tasks
 from rllock.search.dfs import SearchStats, dfs, expand
@@ -636,7 +636,7 @@ def test_held_out_nodes_are_never_trained_on_and_are_judged_as_a_brute_force_cou
 
 
 def test_the_sibling_loss_matches_a_direct_computation():
-    from learner.guide_learner import guide_losses
+    from rllock.learner.guide_learner import guide_losses
 
     params = init_guide(CONFIG, jax.random.PRNGKey(3))
     rng = np.random.default_rng(3)
@@ -704,8 +704,8 @@ def test_a_guide_trained_on_pooled_snapshots_is_the_learner_on_their_states_and_
     each's siblings apart; the checkpoint is the learner's steps on it, bit for bit, through a resume."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from orchestration.guide_offline import keep_snapshot, load_pool
-    from orchestration.guide_train import train_guide
+    from rllock.orchestration.guide_offline import keep_snapshot, load_pool
+    from rllock.orchestration.guide_train import train_guide
 
     a = _snapshot(tmp_path / "run-a" / "replay.npz", 1, 20)
     made = {"command": f"rllock train-guide --logdir {tmp_path}/run-a", "commit": "abc", "date": "today"}
@@ -769,7 +769,7 @@ def test_train_guide_on_snapshots_stops_on_sigterm_with_a_checkpoint_and_resumes
     out = tmp_path / "run"
     saved = out / "checkpoints"
     flags = ["--batch-size", "16", "--checkpoint-minutes", "0.05", "--logdir", str(out)]
-    cli = [sys.executable, "-m", "orchestration.cli", "train-guide"]
+    cli = [sys.executable, "-m", "rllock.orchestration.cli", "train-guide"]
     proc = subprocess.Popen([*cli, "--replay-from", str(tmp_path / "a.npz"), "--minutes", "5", *flags],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
     try:
@@ -904,8 +904,8 @@ def test_bench_guide_runs_its_arms_on_the_same_seeds_and_refuses_bad_cells_in_on
 
 
 def test_the_guide_table_names_the_untrained_arms_seed():
-    from orchestration.bench.guide import GuideRow, format_guide_table
-    from orchestration.bench.shapes import Cell
+    from rllock.orchestration.bench.guide import GuideRow, format_guide_table
+    from rllock.orchestration.bench.shapes import Cell
     from rllock.search.curriculum import parse_named_task
 
     guide = Guide(CONFIG, init_guide(CONFIG, jax.random.PRNGKey(7)), "trained", horizon=9)
@@ -936,7 +936,7 @@ def test_untrained_arms_of_other_seeds_are_other_initial_networks():
 def test_every_shipped_guide_loads_and_names_what_made_it_down_to_its_kept_data():
     """`--guide` alone loads the shipped guide; a guide trained on kept snapshots names them by hash,
     and they are the files in data/replay (so its command reproduces it from the repository)."""
-    from orchestration.guide_offline import sha256
+    from rllock.orchestration.guide_offline import sha256
     from rllock.search.guide_checkpoint import SHIPPED_GUIDE, describe_guide, shipped_guides
 
     root = Path(__file__).resolve().parents[1]
@@ -978,7 +978,7 @@ def test_a_shipped_guide_names_no_machine_path_and_loads(tmp_path, monkeypatch, 
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # `rllock pretrained` lists it below the policies, with what made it.
     monkeypatch.setattr("rllock.search.guide_checkpoint.GUIDES", tmp_path / "guides")
-    from orchestration.cli.main import main
+    from rllock.orchestration.cli.main import main
 
     assert main(["pretrained"]) == 0
     row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| myguide |"))

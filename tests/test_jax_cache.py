@@ -11,8 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from orchestration.bench.arms import Arm, cache_start
-from orchestration.bench.paper import PAPER_TASKS, PaperRow, format_paper_table, row_json
+from rllock.orchestration.bench.arms import Arm, cache_start
+from rllock.orchestration.bench.paper import PAPER_TASKS, PaperRow, format_paper_table, row_json
 
 # Compiles the network's forward pass (a program without host callbacks, so JAX may cache it) in a
 # fresh process set up as the CLI does, and reports what it found in the cache.
@@ -72,7 +72,7 @@ def test_the_cli_sets_the_cache_up_where_the_variable_moves_it(tmp_path):
     folder = tmp_path / "moved"
     env = {**os.environ, "RLLOCK_JAX_CACHE": str(folder)}
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestration.cli", "verify", str(tmp_path / "missing.json")],
+        [sys.executable, "-m", "rllock.orchestration.cli", "verify", str(tmp_path / "missing.json")],
         env=env,
         capture_output=True,
         text=True,

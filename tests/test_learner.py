@@ -7,14 +7,14 @@ import jax
 import numpy as np
 import pytest
 
-from learner.learner import Learner, LearnerConfig
-from learner.replay import ReplayBuffer
-from orchestration.recorder import validation_rank
 from rllock.config import TrainConfig
 from rllock.core.env import make_task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
 from rllock.files import orbax_io
+from rllock.learner.learner import Learner, LearnerConfig
+from rllock.learner.replay import ReplayBuffer
+from rllock.orchestration.recorder import validation_rank
 from rllock.search.inference import load_policy
 from rllock.search.mcts import ChunkStore, MCTSConfig, Searcher
 from rllock.search.network import NetConfig, PolicyValueNet

@@ -7,12 +7,12 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from actors.guide_actor import SearchTotals
-from actors.selfplay import PlayTotals
-from orchestration.loop import Loop, System
-from orchestration.pacing import Pacing, Schedule
-from orchestration.recorder import Counters, totals_of
-from orchestration.stopping import StopRequest
+from rllock.actors.guide_actor import SearchTotals
+from rllock.actors.selfplay import PlayTotals
+from rllock.orchestration.loop import Loop, System
+from rllock.orchestration.pacing import Pacing, Schedule
+from rllock.orchestration.recorder import Counters, totals_of
+from rllock.orchestration.stopping import StopRequest
 
 
 def test_counters_keep_the_keys_checkpoints_have_always_held_and_read_them_back():

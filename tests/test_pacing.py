@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
-from orchestration.pacing import COMPILE_S, RESERVE_S, Pacing, Schedule, final_reserve, validation_estimate
 from rllock.config import LearnerConfig, TrainConfig
+from rllock.orchestration.pacing import (
+    COMPILE_S,
+    RESERVE_S,
+    Pacing,
+    Schedule,
+    final_reserve,
+    validation_estimate,
+)
 
 PACING = Pacing(warmup=64, batch_size=64, replay_ratio=4.0, max_policy_lag=4, max_learner_steps=10)
 

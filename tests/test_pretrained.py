@@ -11,11 +11,11 @@ import orbax.checkpoint as ocp
 import pytest
 from helpers import run_cli, save_run
 
-from orchestration.bench.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
-from orchestration.cli.main import main
 from rllock.core.env import make_task
 from rllock.errors import RLLockError
 from rllock.files import checkpoint as ckpt
+from rllock.orchestration.bench.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
+from rllock.orchestration.cli.main import main
 from rllock.search import pretrained
 from rllock.search.guide_checkpoint import shipped_guides
 from rllock.search.inference import (

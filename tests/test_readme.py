@@ -41,7 +41,7 @@ def test_the_readme_commands_run_as_written_in_order(tmp_path):
     for command in readme_commands():
         args = shlex.split(command)[1:]
         proc = subprocess.run(
-            [sys.executable, "-m", "orchestration.cli", *args],
+            [sys.executable, "-m", "rllock.orchestration.cli", *args],
             cwd=tmp_path,
             capture_output=True,
             text=True,

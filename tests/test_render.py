@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from orchestration.cli.assemblies import add_commands
 from rllock.core.reference_checkers import DIRECTION_NAMES, DIRECTIONS
 from rllock.core.shapes import read_puz_labels, write_puz
 from rllock.core.verifier import verify_labels
@@ -31,6 +30,7 @@ from rllock.files.render import (
     write_html,
     write_picture,
 )
+from rllock.orchestration.cli.assemblies import add_commands
 
 CHROMIUM = Path("/usr/bin/chromium")
 

@@ -10,7 +10,7 @@ import shlex
 from functools import cache
 from pathlib import Path
 
-from orchestration.cli.main import build_parser
+from rllock.orchestration.cli.main import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results.md"

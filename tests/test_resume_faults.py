@@ -28,7 +28,7 @@ TINY = tiny_flags()
 
 def _train(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "orchestration.cli", "train", *args],
+        [sys.executable, "-m", "rllock.orchestration.cli", "train", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -178,7 +178,7 @@ def test_minutes_are_a_hard_budget_even_when_a_validation_would_overrun_and_the_
     started = time.monotonic()
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "orchestration.cli", "train", *slow, "--minutes", str(minutes)]
+            [sys.executable, "-m", "rllock.orchestration.cli", "train", *slow, "--minutes", str(minutes)]
             + ["--logdir", str(logdir)],
             capture_output=True,
             text=True,

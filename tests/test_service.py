@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import requests
 
-from orchestration.bench.serve import ServerProcess
+from rllock.orchestration.bench.serve import ServerProcess
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
 RAY_GROUP = "service"  # tests/conftest.py: beside the other Ray tests, on whichever worker is free
@@ -46,7 +46,7 @@ def server(tmp_path_factory):
 
 
 def test_free_ports_are_free_and_below_the_ones_port_0_binds_get():
-    from orchestration.bench.serve import _ephemeral_low, free_port
+    from rllock.orchestration.bench.serve import _ephemeral_low, free_port
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestration.service.app import Ingress, make_api
-from orchestration.service.files import check_print, declared_too_large, zip_name
-from orchestration.service.jobs import (
+from rllock.errors import RLLockError
+from rllock.orchestration.service.app import Ingress, make_api
+from rllock.orchestration.service.files import check_print, declared_too_large, zip_name
+from rllock.orchestration.service.jobs import (
     JobFailed,
     JobQueue,
     JobRecord,
@@ -23,8 +24,7 @@ from orchestration.service.jobs import (
     job_view,
     read_records,
 )
-from orchestration.service.request import JobSpec, Limits, TooLarge, shape_grid
-from rllock.errors import RLLockError
+from rllock.orchestration.service.request import JobSpec, Limits, TooLarge, shape_grid
 
 # job.json as the server has written it since the service began (dicts, before typed records).
 OLD_RECORD = {

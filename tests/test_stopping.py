@@ -1,4 +1,4 @@
-"""The trainers' stop on a signal (`orchestration.stopping`), with real signals to this process."""
+"""The trainers' stop on a signal (`rllock.orchestration.stopping`), with real signals to this process."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import subprocess
 
 import pytest
 
-from orchestration.stopping import StopRequest, exit_status, signal_name, stop_on_signals
+from rllock.orchestration.stopping import StopRequest, exit_status, signal_name, stop_on_signals
 
 
 def test_a_first_signal_asks_for_a_stop_a_second_aborts_and_the_handlers_come_back():

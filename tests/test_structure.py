@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import argparse
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
 
-from orchestration.cli.flags import add_flags, field_docs, from_flags
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig, TrainConfig, from_flat, from_json, to_json
+from rllock.orchestration.cli.flags import add_flags, field_docs, from_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 # The floors of the house, lowest first. A module may import its own floor and any floor below, but
@@ -20,22 +21,43 @@ FLOORS: list[tuple[str, ...]] = [
     ("rllock.core",),
     ("rllock.files",),
     ("rllock.search",),
-    ("actors", "learner"),
-    ("orchestration",),
-    ("orchestration.service",),
-    ("orchestration.cli",),
-    ("orchestration.bench",),
-    ("orchestration.cli.main", "orchestration.cli.__main__"),
+    ("rllock.actors", "rllock.learner"),
+    ("rllock.orchestration",),
+    ("rllock.orchestration.service",),
+    ("rllock.orchestration.cli",),
+    ("rllock.orchestration.bench",),
+    ("rllock.orchestration.cli.main", "rllock.orchestration.cli.__main__"),
     ("cluster",),
 ]
-INDEPENDENT = {frozenset({"actors", "learner"})}
+INDEPENDENT = {frozenset({"rllock.actors", "rllock.learner"})}
 PARTS = {prefix: floor for floor, prefixes in enumerate(FLOORS) for prefix in prefixes}
-PACKAGES = ("rllock", "actors", "learner", "orchestration", "cluster")
+# The repository's top-level folders and the names they are imported as: actors/, learner/ and
+# orchestration/ are installed inside the one `rllock` package (rllock/actors is a link to ../actors), so
+# that `pip install` adds no generic top-level name to a user's environment; cluster/ is the job entry
+# point of the repository, not installed.
+HOMES = {
+    "rllock": "rllock",
+    "actors": "rllock.actors",
+    "learner": "rllock.learner",
+    "orchestration": "rllock.orchestration",
+    "cluster": "cluster",
+}
+PACKAGES = tuple(HOMES)  # folders
+TOP_NAMES = ("rllock", "cluster")  # what the project's modules are imported as
 
 
 def _module_name(path: Path) -> str:
-    parts = path.relative_to(ROOT).with_suffix("").parts
+    folder, *rest = path.relative_to(ROOT).with_suffix("").parts
+    parts = [*HOMES[folder].split("."), *rest]
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _sources(folder: str) -> list[Path]:
+    """The .py files of a top-level folder, not through links (rllock/actors is actors/ again)."""
+    found = []
+    for here, _dirs, files in os.walk(ROOT / folder):  # os.walk does not follow links
+        found += [Path(here) / f for f in files if f.endswith(".py")]
+    return sorted(found)
 
 
 def _part(module: str) -> str | None:
@@ -57,13 +79,13 @@ def _imports(path: Path) -> set[str]:
                 parts = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*parts, base] if base else parts)
             found.add(base)
-    return {m for m in found if m.split(".")[0] in PACKAGES}
+    return {m for m in found if m.split(".")[0] in TOP_NAMES}
 
 
 def _layer_violations() -> dict[str, list[str]]:
     bad: dict[str, list[str]] = {}
     for package in PACKAGES:
-        for path in (ROOT / package).rglob("*.py"):
+        for path in _sources(package):
             here = _part(_module_name(path))
             if here is None:  # rllock/__init__.py, the facade
                 continue
@@ -81,12 +103,12 @@ def test_every_import_goes_down_the_floors():
 
 
 def test_the_layer_check_sees_imports_inside_functions(tmp_path):
-    source = "def f():\n    from orchestration.train import train\n    from . import env\n"
+    source = "def f():\n    from rllock.orchestration.train import train\n    from . import env\n"
     path = ROOT / "rllock" / "core" / "_probe_not_a_module.py"
     try:
         path.write_text(source)
-        assert _imports(path) == {"orchestration.train", "rllock.core"}
-        assert _layer_violations() == {"rllock/core/_probe_not_a_module.py": ["orchestration.train"]}
+        assert _imports(path) == {"rllock.orchestration.train", "rllock.core"}
+        assert _layer_violations() == {"rllock/core/_probe_not_a_module.py": ["rllock.orchestration.train"]}
     finally:
         path.unlink()
 
@@ -112,7 +134,7 @@ def _runs(path: Path, name: str, modules: set[str]) -> set[str]:
 
 def _import_graph(probes: dict[str, Path] | None = None) -> dict[str, set[str]]:
     """Every project module and the modules it imports (`_runs`); `probes`: more modules, by name."""
-    files = {_module_name(p): p for package in PACKAGES for p in (ROOT / package).rglob("*.py")}
+    files = {_module_name(p): p for package in PACKAGES for p in _sources(package)}
     files |= probes or {}
     return {name: _runs(path, name, set(files)) for name, path in files.items()}
 
@@ -156,16 +178,25 @@ def test_the_circle_check_sees_imports_inside_functions_and_package_inits(tmp_pa
     a circle to every other run of the check meanwhile)."""
     sources = {
         # a circle closed by an import inside a function
-        "orchestration._probe_a": ("a.py", "from orchestration import _probe_b\n"),
-        "orchestration._probe_b": ("b.py", "def f():\n    from ._probe_a import f\n"),
+        "rllock.orchestration._probe_a": ("a.py", "from rllock.orchestration import _probe_b\n"),
+        "rllock.orchestration._probe_b": ("b.py", "def f():\n    from ._probe_a import f\n"),
         # a module that imports itself through its package
-        "orchestration._probe_self": ("self.py", "def f():\n    from orchestration import _probe_self\n"),
+        "rllock.orchestration._probe_self": (
+            "self.py",
+            "def f():\n    from rllock.orchestration import _probe_self\n",
+        ),
         # a circle through a package's __init__
-        "orchestration._probe_pkg": ("pkg/__init__.py", "from orchestration._probe_pkg.inner import g\n"),
-        "orchestration._probe_pkg.inner": ("pkg/inner.py", "from orchestration._probe_pkg import h\n"),
+        "rllock.orchestration._probe_pkg": (
+            "pkg/__init__.py",
+            "from rllock.orchestration._probe_pkg.inner import g\n",
+        ),
+        "rllock.orchestration._probe_pkg.inner": (
+            "pkg/inner.py",
+            "from rllock.orchestration._probe_pkg import h\n",
+        ),
         # no circle: an __init__ importing its own submodule, which imports nothing of the package
-        "orchestration._probe_ok": ("ok/__init__.py", "from . import inner\n"),
-        "orchestration._probe_ok.inner": ("ok/inner.py", "import orchestration.pool\n"),
+        "rllock.orchestration._probe_ok": ("ok/__init__.py", "from . import inner\n"),
+        "rllock.orchestration._probe_ok.inner": ("ok/inner.py", "import rllock.orchestration.pool\n"),
     }
     probes = {}
     for name, (file, source) in sources.items():
@@ -173,15 +204,15 @@ def test_the_circle_check_sees_imports_inside_functions_and_package_inits(tmp_pa
         probes[name].parent.mkdir(exist_ok=True)
         probes[name].write_text(source)
     assert _circles(_import_graph(probes)) == [
-        ["orchestration._probe_a", "orchestration._probe_b"],
-        ["orchestration._probe_pkg", "orchestration._probe_pkg.inner"],
-        ["orchestration._probe_self"],
+        ["rllock.orchestration._probe_a", "rllock.orchestration._probe_b"],
+        ["rllock.orchestration._probe_pkg", "rllock.orchestration._probe_pkg.inner"],
+        ["rllock.orchestration._probe_self"],
     ]
 
 
 def test_every_folder_says_what_its_layer_is():
     for package in PACKAGES:
-        for init in (ROOT / package).rglob("__init__.py"):
+        for init in (p for p in _sources(package) if p.name == "__init__.py"):
             doc = ast.get_docstring(ast.parse(init.read_text()))
             assert doc and len(doc) > 40, init
 
@@ -271,7 +302,7 @@ def test_version_one_checkpoints_flat_settings_become_the_nested_config():
 
 
 def test_layouts_give_each_actor_its_share_of_the_cores():
-    from orchestration.pool import plan_layout
+    from rllock.orchestration.pool import plan_layout
 
     per_actor = plan_layout(SelfPlayConfig(), cpus=16, gpus=0, reserved_cpus=1)
     assert (per_actor.actors, per_actor.threads, per_actor.groups, per_actor.mode) == (15, 1, 1, "per-actor")
@@ -288,3 +319,34 @@ def test_layouts_give_each_actor_its_share_of_the_cores():
     # an actor runs on one node: two 1-CPU worker nodes give one actor 1 CPU, not 2
     spread = plan_layout(SelfPlayConfig(actors=1), cpus=2, gpus=0, reserved_cpus=0, node_cpus=1)
     assert (spread.cpus, spread.threads) == (1, 1)
+
+
+def test_the_folders_are_installed_inside_rllock_under_no_generic_name():
+    """actors/, learner/ and orchestration/ are imported only as rllock.actors and so on (the links in
+    rllock/ point at them), never by a bare name that could shadow another package in a user's
+    environment; the wheel installs `rllock` alone."""
+    for folder in ("actors", "learner", "orchestration"):
+        link = ROOT / "rllock" / folder
+        assert link.is_symlink() and link.resolve() == (ROOT / folder).resolve(), link
+    bare = {
+        f"{path.relative_to(ROOT)}: {m}"
+        for package in PACKAGES
+        for path in _sources(package)
+        for m in _named(path)
+        if m.split(".")[0] in ("actors", "learner", "orchestration", "cluster")
+    }
+    assert bare == set()
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'include = ["rllock*"]' in pyproject
+    assert 'rllock = "rllock.orchestration.cli.main:main"' in pyproject
+
+
+def _named(path: Path) -> set[str]:
+    """Every module name `path` imports absolutely, at module level or inside functions."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module)
+    return found

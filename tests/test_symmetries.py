@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from helpers import random_valid_states, raw_chunks
 
-from learner.replay import ReplayBuffer
 from rllock.core import compiled_checkers as checkers
 from rllock.core.env import State, make_task
 from rllock.core.topology import build_topology, symmetries
+from rllock.learner.replay import ReplayBuffer
 from rllock.search.base import Episode
 from rllock.search.workload import augment
 

@@ -19,22 +19,7 @@ from helpers import (
 )
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from actors.selfplay import PlaySpec, SelfPlayWorker
-from learner.learner import Learner
-from learner.replay import ReplayBuffer
-from orchestration.bench.arms import Arm
-from orchestration.bench.transfer import (
-    TransferTask,
-    bench_transfer_task,
-    format_transfer_table,
-    parse_transfer_tasks,
-    ratio,
-    trained_on,
-)
-from orchestration.builder import workload_of
-from orchestration.cli.main import main
-from orchestration.recorder import Counters, Recorder
-from orchestration.validation import Plan, Validator
+from rllock.actors.selfplay import PlaySpec, SelfPlayWorker
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, TrainConfig
 from rllock.core.env import State, make_task
 from rllock.core.shapes import crop, is_connected
@@ -43,6 +28,21 @@ from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
 from rllock.files.assembly import read_assembly
 from rllock.files.checkpoint import find_step_dir, read_metadata
+from rllock.learner.learner import Learner
+from rllock.learner.replay import ReplayBuffer
+from rllock.orchestration.bench.arms import Arm
+from rllock.orchestration.bench.transfer import (
+    TransferTask,
+    bench_transfer_task,
+    format_transfer_table,
+    parse_transfer_tasks,
+    ratio,
+    trained_on,
+)
+from rllock.orchestration.builder import workload_of
+from rllock.orchestration.cli.main import main
+from rllock.orchestration.recorder import Counters, Recorder
+from rllock.orchestration.validation import Plan, Validator
 from rllock.search import pretrained
 from rllock.search.canvas import augment_canvas, canvas_episode, crop_canvas
 from rllock.search.inference import load_network, load_policy, with_simulations

@@ -11,8 +11,8 @@ import ray
 from helpers import TINY, run_cli
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from orchestration.train import train
 from rllock.errors import RLLockError
+from rllock.orchestration.train import train
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
 STEPS = 60

@@ -74,8 +74,8 @@ def test_each_method_takes_its_own_settings_unless_others_are_given():
     ],
 )
 def test_a_flag_the_user_gives_always_wins_over_the_method_defaults(flags, want):
-    from orchestration.cli.main import build_parser
-    from orchestration.cli.training import train_config
+    from rllock.orchestration.cli.main import build_parser
+    from rllock.orchestration.cli.training import train_config
 
     args = build_parser().parse_args(
         ["train", "--shape", "cube4", "--pieces", "7", "--method", "rl-lock-action", *flags]
@@ -90,8 +90,8 @@ def test_a_flag_the_user_gives_always_wins_over_the_method_defaults(flags, want)
 
 
 def test_ppo_keeps_a_replay_ratio_given_equal_to_the_general_default():
-    from orchestration.cli.main import build_parser
-    from orchestration.cli.training import train_config
+    from rllock.orchestration.cli.main import build_parser
+    from rllock.orchestration.cli.training import train_config
 
     def parse(*flags: str):
         return train_config(build_parser().parse_args(["train", "--shape", "cube4", "--pieces", "7", *flags]))

@@ -14,10 +14,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from orchestration.bench.paper import PaperTask, parse_paper_tasks
 from rllock.config import METHODS
 from rllock.errors import RLLockError
 from rllock.files.checkpoint import open_checkpoint
+from rllock.orchestration.bench.paper import PaperTask, parse_paper_tasks
 from rllock.search.inference import generate, load_policy
 
 log = logging.getLogger(__name__)

@@ -1,23 +1,23 @@
 """The `rllock bench` command group: every bench registers here, its flags beside the others, with the
-protocol flags of `orchestration.cli.common` defined once; its command is in `orchestration.bench.entry`.
-`add_commands(subparsers)` adds `bench` to the `rllock` parser.
+protocol flags of `rllock.orchestration.cli.common` defined once; its command is in
+`rllock.orchestration.bench.entry`. `add_commands(subparsers)` adds `bench` to the `rllock` parser.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from orchestration.bench import entry
-from orchestration.cli.common import (
+from rllock.config import EVALUATION_MODES, SelfPlayConfig
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.orchestration.bench import entry
+from rllock.orchestration.cli.common import (
     add_checkpoint_args,
     add_checkpoint_task_args,
     add_protocol_args,
     add_simulations_arg,
     positive_float,
 )
-from orchestration.cli.flags import field_docs
-from rllock.config import EVALUATION_MODES, SelfPlayConfig
-from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.orchestration.cli.flags import field_docs
 
 
 def add_table_bench_args(p: argparse.ArgumentParser, unit: str) -> None:

@@ -1,5 +1,5 @@
 """Each `rllock bench` command: parse its lists, run its bench (imported only when it runs, so that the
-parser stays light) and print the result. `orchestration.bench.commands` registers them all."""
+parser stays light) and print the result. `rllock.orchestration.bench.commands` registers them all."""
 
 from __future__ import annotations
 
@@ -13,18 +13,18 @@ from typing import Any
 
 from tqdm import tqdm
 
-from orchestration.bench.learning import ArmRow, learning_ratio
-from orchestration.bench.specs import choices, counts, items
-from orchestration.cli.common import load_for, ray_on_loopback_unless
 from rllock.config import SelfPlayConfig
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.errors import RLLockError
+from rllock.orchestration.bench.learning import ArmRow, learning_ratio
+from rllock.orchestration.bench.specs import choices, counts, items
+from rllock.orchestration.cli.common import load_for, ray_on_loopback_unless
 
 log = logging.getLogger("rllock")
 
 
 def cmd_bench_checkers(args: argparse.Namespace) -> int:
-    from orchestration.bench.solve import bench_checkers
+    from rllock.orchestration.bench.solve import bench_checkers
 
     r = bench_checkers(
         shape=args.shape, pieces=args.pieces, piece=args.piece, seconds=args.seconds, removal=args.removal
@@ -52,7 +52,7 @@ def cmd_bench_checkers(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_solve(args: argparse.Namespace) -> int:
-    from orchestration.bench.solve import bench_solve_task, format_solve_table, parse_tasks
+    from rllock.orchestration.bench.solve import bench_solve_task, format_solve_table, parse_tasks
     from rllock.search.search_config import SearchConfig
 
     tasks = parse_tasks(args.tasks)
@@ -109,7 +109,12 @@ def task_table(args: argparse.Namespace, name: str, tasks: list, bench_one, form
 
 
 def cmd_bench_paper(args: argparse.Namespace) -> int:
-    from orchestration.bench.paper import bench_paper_task, format_paper_table, parse_paper_tasks, row_json
+    from rllock.orchestration.bench.paper import (
+        bench_paper_task,
+        format_paper_table,
+        parse_paper_tasks,
+        row_json,
+    )
 
     tasks = parse_paper_tasks(args.tasks)
     return task_table(args, "paper", tasks, bench_paper_task, format_paper_table, row_json)
@@ -118,7 +123,7 @@ def cmd_bench_paper(args: argparse.Namespace) -> int:
 def cmd_bench_transfer(args: argparse.Namespace) -> int:
     from functools import partial
 
-    from orchestration.bench.transfer import (
+    from rllock.orchestration.bench.transfer import (
         bench_transfer_task,
         format_transfer_table,
         multitask_checkpoint,
@@ -135,8 +140,8 @@ def cmd_bench_transfer(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_ablation(args: argparse.Namespace) -> int:
-    from orchestration.bench.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
     from rllock.config import METHODS
+    from rllock.orchestration.bench.ablation import ablation_cell, format_ablation_table, parse_ablation_tasks
 
     tasks = parse_ablation_tasks(args.tasks)
     root = Path(args.runs)
@@ -167,9 +172,9 @@ def cmd_bench_selfplay(args: argparse.Namespace) -> int:
     if args.episodes_per_batch < 1 or args.simulations < 1:
         raise RLLockError("--actors, --episodes-per-batch and --simulations must be at least 1")
     ray_on_loopback_unless(None)
-    from orchestration.bench.selfplay import bench_selfplay
     from rllock.config import MCTSConfig, NetConfig
     from rllock.core.env import make_task
+    from rllock.orchestration.bench.selfplay import bench_selfplay
     from rllock.search.network import fit_canvas
 
     task = make_task(args.shape, args.pieces)
@@ -212,7 +217,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
     ray_on_loopback_unless(None)  # the bench's nodes all on 127.0.0.1
     import dataclasses
 
-    from orchestration.bench.scaling import PRESETS, bench_scaling, format_scaling
+    from rllock.orchestration.bench.scaling import PRESETS, bench_scaling, format_scaling
 
     plan = PRESETS[args.preset]
     changes: dict[str, Any] = {
@@ -235,7 +240,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_shapes(args: argparse.Namespace) -> int:
-    from orchestration.bench.shapes import (
+    from rllock.orchestration.bench.shapes import (
         PIECES,
         SHAPES,
         bench_shapes,
@@ -361,7 +366,7 @@ def cmd_bench_success(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_guide(args: argparse.Namespace) -> int:
-    from orchestration.bench.guide import bench_guide, format_guide_table, parse_cells, rows_json
+    from rllock.orchestration.bench.guide import bench_guide, format_guide_table, parse_cells, rows_json
     from rllock.search.guide_checkpoint import load_guide
     from rllock.search.search_config import SearchConfig
 
@@ -408,7 +413,7 @@ def cmd_bench_guide(args: argparse.Namespace) -> int:
 def cmd_bench_serve(args: argparse.Namespace) -> int:
     import os
 
-    from orchestration.bench.serve import format_load_table, load_test
+    from rllock.orchestration.bench.serve import format_load_table, load_test
 
     if args.jobs < 1:
         raise RLLockError(f"--jobs must be at least 1, got {args.jobs}")

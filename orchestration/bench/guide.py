@@ -14,10 +14,10 @@ import logging
 import statistics
 from dataclasses import dataclass
 
-from orchestration.bench.arms import warm_process
-from orchestration.bench.shapes import Cell, solver_cell
-from orchestration.bench.specs import parse_list
 from rllock.core.env import initial_state
+from rllock.orchestration.bench.arms import warm_process
+from rllock.orchestration.bench.shapes import Cell, solver_cell
+from rllock.orchestration.bench.specs import parse_list
 from rllock.search.curriculum import NamedTask, parse_named_task
 from rllock.search.guide import Guide, untrained_like
 from rllock.search.search_config import SearchConfig

@@ -8,7 +8,7 @@ checkpoint; what any arm would pay once per process (the sampler's compiled code
 before the first arm, so that running first costs no arm anything. The paper's figures (Table 1, RTX 5090
 workstation) stand beside them.
 
-Each network arm also says how it started (`orchestration.bench.arms.Arm.cache`).
+Each network arm also says how it started (`rllock.orchestration.bench.arms.Arm.cache`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,11 @@ from dataclasses import dataclass
 
 import jax
 
-from orchestration.bench.arms import (
+from rllock.config import MCTSConfig, NetConfig
+from rllock.core.env import make_task
+from rllock.errors import RLLockError
+from rllock.files.checkpoint import shipped_names
+from rllock.orchestration.bench.arms import (
     Arm,
     ArmProtocol,
     arm_cell,
@@ -28,12 +32,8 @@ from orchestration.bench.arms import (
     solver_arm,
     warm_process,
 )
-from orchestration.bench.solve import PAPER_MINUTES
-from orchestration.bench.specs import parse_list
-from rllock.config import MCTSConfig, NetConfig
-from rllock.core.env import make_task
-from rllock.errors import RLLockError
-from rllock.files.checkpoint import shipped_names
+from rllock.orchestration.bench.solve import PAPER_MINUTES
+from rllock.orchestration.bench.specs import parse_list
 from rllock.search.inference import Policy, load_policy, untrained_like
 from rllock.search.network import fit_canvas, init_params
 

@@ -28,11 +28,11 @@ import numpy as np
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from learner.learner import Learner
-from orchestration.bench.selfplay import drain, start_buffer, timed_window
-from orchestration.pool import ActorPool, largest_node_cpus, plan_layout
 from rllock.config import LearnerConfig, MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.core.env import make_task
+from rllock.learner.learner import Learner
+from rllock.orchestration.bench.selfplay import drain, start_buffer, timed_window
+from rllock.orchestration.pool import ActorPool, largest_node_cpus, plan_layout
 from rllock.search.network import fit_canvas
 from rllock.search.workload import SingleTask
 

@@ -12,10 +12,10 @@ from typing import Any
 import jax
 import ray
 
-from learner.replay import ReplayBuffer
-from orchestration.pool import ActorPool, Layout, on_driver_node, plan_layout, start_ray
 from rllock.config import MCTSConfig, NetConfig, SelfPlayConfig
 from rllock.core.env import Task
+from rllock.learner.replay import ReplayBuffer
+from rllock.orchestration.pool import ActorPool, Layout, on_driver_node, plan_layout, start_ray
 from rllock.search.base import TimeSplit
 from rllock.search.network import init_params
 from rllock.search.workload import SingleTask

@@ -68,7 +68,7 @@ class ServerProcess:
     def start(self, timeout: float = 180.0) -> float:
         """Start the server; the seconds until /api/health answered."""
         began = time.monotonic()
-        command = [sys.executable, "-m", "orchestration.cli", "serve", "--port", str(self.port)]
+        command = [sys.executable, "-m", "rllock.orchestration.cli", "serve", "--port", str(self.port)]
         with open(self.log_path, "a") as out:
             self.proc = subprocess.Popen(
                 [*command, "--data", str(self.data), *self.args],

@@ -17,12 +17,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from orchestration.bench.arms import policy_arm, warm_process
 from rllock.core.env import Task, make_task
 from rllock.core.feasibility import impossibility
 from rllock.core.shapes import load_shape
 from rllock.core.verifier import verify_labels
 from rllock.errors import RLLockError
+from rllock.orchestration.bench.arms import policy_arm, warm_process
 from rllock.search.dfs import SearchStats
 from rllock.search.guide import Guide
 from rllock.search.inference import load_policy, with_simulations

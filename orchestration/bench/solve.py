@@ -7,9 +7,9 @@ import statistics
 import time
 from dataclasses import dataclass
 
-from orchestration.bench.specs import parse_list
 from rllock.core.env import State, Task, initial_state, make_task, sample_accepted
 from rllock.errors import RLLockError
+from rllock.orchestration.bench.specs import parse_list
 from rllock.search.restarts import reach_depth
 from rllock.search.search_config import SearchConfig
 from rllock.search.solver import search

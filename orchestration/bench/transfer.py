@@ -7,14 +7,18 @@ For each task, the paper's protocol (batches of 64 episodes until 5 valid assemb
   solver      the search solver.
 Each row says whether the task's shape was one of the checkpoint's training shapes (random training
 shapes are fresh draws, so a named shape outside the spec was never seen). Times are wall clock per
-valid assembly, loading and compiling included (`orchestration.bench.paper`).
+valid assembly, loading and compiling included (`rllock.orchestration.bench.paper`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from orchestration.bench.arms import (
+from rllock.core.env import Task, make_task
+from rllock.core.shapes import grid_sha256
+from rllock.errors import RLLockError
+from rllock.files.checkpoint import Checkpoint, Metadata, open_checkpoint, shipped_names
+from rllock.orchestration.bench.arms import (
     Arm,
     ArmProtocol,
     arm_cell,
@@ -24,11 +28,7 @@ from orchestration.bench.arms import (
     solver_arm,
     warm_process,
 )
-from orchestration.bench.specs import parse_list
-from rllock.core.env import Task, make_task
-from rllock.core.shapes import grid_sha256
-from rllock.errors import RLLockError
-from rllock.files.checkpoint import Checkpoint, Metadata, open_checkpoint, shipped_names
+from rllock.orchestration.bench.specs import parse_list
 from rllock.search.inference import load_policy, untrained_like, with_simulations
 
 # Held-out shapes for a generalist trained on cubes, boxes and random shapes: not cubes, 144-168 voxels,

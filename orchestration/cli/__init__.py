@@ -6,5 +6,5 @@
   training.py     train, generate, pretrained
   flags.py        command-line flags generated from the typed configs
 
-The benchmarks register under `rllock bench` from `orchestration.bench`.
+The benchmarks register under `rllock bench` from `rllock.orchestration.bench`.
 """

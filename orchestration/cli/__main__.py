@@ -1,7 +1,7 @@
-"""`python -m orchestration.cli`: the `rllock` command."""
+"""`python -m rllock.orchestration.cli`: the `rllock` command."""
 
 import sys
 
-from orchestration.cli.main import main
+from rllock.orchestration.cli.main import main
 
 sys.exit(main())

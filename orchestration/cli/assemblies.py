@@ -18,19 +18,26 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orchestration.cli.common import (
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.core.verifier import Verdict, verify_labels
+from rllock.errors import RLLockError
+from rllock.files.assembly import read_assembly, write_assembly
+from rllock.files.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
+from rllock.orchestration.cli.common import (
     add_protocol_args,
     add_task_args,
     assemblies_word,
     fresh_out,
     picture_writer,
 )
-from orchestration.cli.longwork import INTERRUPTED, advice, general_serves, graceful_stop, is_interrupt, kept
-from rllock.core.reference_checkers import REMOVAL_MODES
-from rllock.core.verifier import Verdict, verify_labels
-from rllock.errors import RLLockError
-from rllock.files.assembly import read_assembly, write_assembly
-from rllock.files.export import FORMATS, MESH_FORMATS, PRINT_GAP, write_meshes, write_xmpuzzle
+from rllock.orchestration.cli.longwork import (
+    INTERRUPTED,
+    advice,
+    general_serves,
+    graceful_stop,
+    is_interrupt,
+    kept,
+)
 
 log = logging.getLogger(__name__)
 PROGRESS_LOG_EVERY = 5.0  # seconds between progress lines in a log (stderr not a terminal)
@@ -155,7 +162,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
 def _join_ray(address: str) -> bool:
     """Join the Ray cluster at `address` for the search workers; a cluster that cannot be reached is one
     line. True when this process connected (and so disconnects at the end)."""
-    from orchestration.pool import start_ray
+    from rllock.orchestration.pool import start_ray
 
     try:
         return start_ray(address)

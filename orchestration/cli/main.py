@@ -9,9 +9,9 @@ import logging
 import os
 import sys
 
-from orchestration.bench import commands as bench_commands
-from orchestration.cli import assemblies, service, training
 from rllock.errors import RLLockError
+from rllock.orchestration.bench import commands as bench_commands
+from rllock.orchestration.cli import assemblies, service, training
 from rllock.process import setup_jax_cache
 
 

@@ -1,11 +1,11 @@
-"""The service command: `serve` (the HTTP API and web page on Ray Serve, `orchestration.service`)."""
+"""The service command: `serve` (the HTTP API and web page on Ray Serve, `rllock.orchestration.service`)."""
 
 from __future__ import annotations
 
 import argparse
 
-from orchestration.cli.common import ray_on_loopback_unless
-from orchestration.cli.flags import add_flags, from_flags
+from rllock.orchestration.cli.common import ray_on_loopback_unless
+from rllock.orchestration.cli.flags import add_flags, from_flags
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -14,7 +14,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     config = from_flags(ServeConfig, args)
     config.validate()
     ray_on_loopback_unless(config.address)
-    from orchestration.service.app import serve_forever
+    from rllock.orchestration.service.app import serve_forever
 
     return serve_forever(config)
 

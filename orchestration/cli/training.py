@@ -14,7 +14,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from orchestration.cli.common import (
+from rllock.config import EVALUATION_MODES, METHODS, TrainConfig, with_method_defaults
+from rllock.core.reference_checkers import REMOVAL_MODES
+from rllock.errors import RLLockError
+from rllock.orchestration.cli.common import (
     add_checkpoint_args,
     assemblies_word,
     fresh_out,
@@ -22,12 +25,9 @@ from orchestration.cli.common import (
     picture_writer,
     ray_on_loopback_unless,
 )
-from orchestration.cli.flags import add_flags, from_flags, given_flags
-from orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
-from orchestration.stopping import exit_status
-from rllock.config import EVALUATION_MODES, METHODS, TrainConfig, with_method_defaults
-from rllock.core.reference_checkers import REMOVAL_MODES
-from rllock.errors import RLLockError
+from rllock.orchestration.cli.flags import add_flags, from_flags, given_flags
+from rllock.orchestration.cli.longwork import INTERRUPTED, advice, graceful_stop, is_interrupt, kept
+from rllock.orchestration.stopping import exit_status
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
@@ -46,7 +46,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     else:
         config = train_config(args)
     ray_on_loopback_unless(config.address)
-    from orchestration.train import train
+    from rllock.orchestration.train import train
 
     result = train(config, resume=bool(args.resume))
     if result.interrupted:
@@ -104,7 +104,7 @@ def _ray_first(args: argparse.Namespace) -> Iterator[None]:
     ray_on_loopback_unless(args.address)
     import ray
 
-    from orchestration.pool import start_ray
+    from rllock.orchestration.pool import start_ray
 
     started = start_ray(args.address)
     try:
@@ -141,7 +141,7 @@ def _generate_into(args: argparse.Namespace, policy, out: Path, stop):
         picture=picture_writer(),
     )
     if args.actors:
-        from orchestration.generate import generate_on_ray
+        from rllock.orchestration.generate import generate_on_ray
 
         return generate_on_ray(policy, actors=args.actors, address=args.address, stop=stop, **settings)
     from rllock.search.inference import generate
@@ -223,7 +223,7 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
     from rllock.config import GuideTrainConfig
 
     if args.resume:
-        from orchestration.guide_train import resume_config
+        from rllock.orchestration.guide_train import resume_config
 
         config = resume_config(
             Path(args.resume), args.minutes, args.actors, args.address, args.max_learner_steps
@@ -232,7 +232,7 @@ def cmd_train_guide(args: argparse.Namespace) -> int:
         config = from_flags(GuideTrainConfig, args)
     config.validate()
     ray_on_loopback_unless(config.address)
-    from orchestration.guide_train import train_guide
+    from rllock.orchestration.guide_train import train_guide
 
     result = train_guide(config, resume=bool(args.resume))
     if result.interrupted:

@@ -31,8 +31,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from ray import serve
 
-from orchestration.service.files import check_print, declared_too_large, read_upload, stl_zip, zip_name
-from orchestration.service.jobs import (
+from rllock.config import ServeConfig
+from rllock.errors import RLLockError
+from rllock.orchestration.service.files import check_print, declared_too_large, read_upload, stl_zip, zip_name
+from rllock.orchestration.service.jobs import (
     ASSEMBLY_FILES,
     FINAL,
     JobQueue,
@@ -40,8 +42,8 @@ from orchestration.service.jobs import (
     TooManyJobs,
     WrongState,
 )
-from orchestration.service.model import ModelServer
-from orchestration.service.request import (
+from rllock.orchestration.service.model import ModelServer
+from rllock.orchestration.service.request import (
     JobSpec,
     Limits,
     TooLarge,
@@ -51,9 +53,7 @@ from orchestration.service.request import (
     shape_summary,
     too_large,
 )
-from orchestration.service.work import MODEL, SERVICE, RayRunner
-from rllock.config import ServeConfig
-from rllock.errors import RLLockError
+from rllock.orchestration.service.work import MODEL, SERVICE, RayRunner
 
 log = logging.getLogger(__name__)
 # In the replicas, Ray Serve's logger is the one with handlers (its log files, and the server's stderr).
@@ -364,7 +364,7 @@ def check_port(host: str, port: int) -> None:
 
 def serve_forever(config: ServeConfig) -> int:
     """Start Ray (or join --address), run the application until SIGINT or SIGTERM, then tear it down."""
-    from orchestration.pool import start_ray
+    from rllock.orchestration.pool import start_ray
 
     config = ServeConfig(**{**asdict(config), "data": str(Path(config.data).resolve())})
     check_port(config.host, config.port)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from fastapi import UploadFile
 
-from orchestration.service.request import TooLarge, too_large
 from rllock.errors import RLLockError
+from rllock.orchestration.service.request import TooLarge, too_large
 
 FORM_SLACK = 65536
 """Bytes a request body may carry beyond the upload cap: the form's other fields and its boundaries."""

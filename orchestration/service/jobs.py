@@ -28,7 +28,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from orchestration.service.request import JobSpec, spec_from_json, spec_json
+from rllock.orchestration.service.request import JobSpec, spec_from_json, spec_json
 
 FINAL = frozenset({"done", "failed", "cancelled"})
 STATES = frozenset({"queued", "running"}) | FINAL

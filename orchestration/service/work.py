@@ -19,10 +19,10 @@ import numpy as np
 import ray
 from ray import serve
 
-from orchestration.service.jobs import ASSEMBLY, JobFailed
-from orchestration.service.request import JobSpec
 from rllock.core.env import Task, make_task
 from rllock.errors import RLLockError
+from rllock.orchestration.service.jobs import ASSEMBLY, JobFailed
+from rllock.orchestration.service.request import JobSpec
 
 SERVICE, MODEL = "Service", "Model"  # the deployments' names in the application
 GENERATE_BATCH = 8  # lockstep episodes of a generate job: one network request carries them all

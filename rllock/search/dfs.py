@@ -60,7 +60,7 @@ def never() -> bool:
 
 Record = Callable[[State, float], None]
 """Takes each state the search leaves (its subtree done, its restart cut short, or on an assembly's path),
-with its lookahead share (`Child.share`): where a guide network's training (`actors.guide_actor`) picks
+with its lookahead share (`Child.share`): where a guide network's training (`rllock.actors.guide_actor`) picks
 the states it labels."""
 
 

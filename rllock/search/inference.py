@@ -3,7 +3,7 @@ assemblies or the time limit), every result verified before it is written.
 
 Round r of a protocol with seed s plays one batch with PRNG key fold_in(key(s), r) and node seed
 derive_seed(s, r), split into lockstep groups searched in threads (`local_groups`: one per core on a
-CPU, one on a GPU; one per Ray actor of one core in `orchestration.generate`). The same seed and group
+CPU, one on a GPU; one per Ray actor of one core in `rllock.orchestration.generate`). The same seed and group
 count give the same episodes; on Ray, which rounds finish first also decides which assemblies are kept.
 """
 

@@ -182,7 +182,7 @@ class ManyTasks(Workload):
         )
 
     def inputs(self, sample, net, seed):
-        canvas = int(sample.get("canvas", self.canvas))  # the batch's own canvas (learner.replay)
+        canvas = int(sample.get("canvas", self.canvas))  # the batch's own canvas (rllock.learner.replay)
         if seed is not None:
             sample = augment_canvas(sample, canvas, seed)
         planes = encode_canvas(sample["labels"], sample["placed"], sample["pieces"], canvas, net.task_planes)
