@@ -106,7 +106,7 @@ class SamplingPool:
     def own(self, task: Task) -> Task:
         """`task` with this thread's own copy of its topology tables. The compiled sampler counts
         references to the arrays it is given with atomic increments; two threads sharing one array make
-        its count's cache line bounce between the cores, which cost a sample about 5% more CPU time."""
+        its count's cache line bounce between the cores, which costs every sample CPU time."""
         held = getattr(self.local, "held", None)
         if held is None or held[0] is not task:
             topology = task.topology

@@ -126,7 +126,7 @@ def encode_batch(
 
 class Conv3(nn.Module):
     """A 3x3x3 'SAME' convolution as one matmul over the 9 (y, z) shifts, whose 3 outputs per voxel (one
-    per x offset) are summed with x shifts. On the CPU this is 3-15x faster than XLA's convolution and
+    per x offset) are summed with x shifts. On the CPU this is several times faster than XLA's convolution and
     than a matmul over all 27 shifts for these small volumes (tests check it equals lax.conv). The
     kernel is stored as (27 C_in, out), offsets (dx, dy, dz) row-major: a DHWIO kernel reshaped."""
 
