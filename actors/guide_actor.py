@@ -108,7 +108,7 @@ class Probes:
 @dataclass(frozen=True)
 class Labelled:
     """Encoded children with their rollout labels: the share of rollouts that reached an assembly, and
-    what each rollout reached (`solver.rollout_reach`: 1.0 an assembly)."""
+    what each rollout reached (`restarts.rollout_reach`: 1.0 an assembly)."""
 
     window: np.ndarray  # int8 [B, W, W, W, channels]
     features: np.ndarray  # float32 [B, GLOBALS]
@@ -122,7 +122,7 @@ class Labelled:
 
 
 def label_children(task: Task, parents: list[State], config: GuideTrainConfig, seed: int) -> Labelled:
-    """The children (`solver.expand`) of the first `config.probes` of `parents` that have any, each
+    """The children (`dfs.expand`) of the first `config.probes` of `parents` that have any, each
     labelled by the share of `config.rollouts` plain searches from it that reach an assembly."""
     w = config.guide.window
     depth = channels(config.guide)

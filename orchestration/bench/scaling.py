@@ -54,7 +54,7 @@ class ScalingPlan:
 
 
 PRESETS = {
-    # Runs in about 4 minutes on 2 cores: 1 and 2 actors, on one node and on three.
+    # Sized for 2 cores: 1 and 2 actors, on one node and on three, in minutes.
     "small": ScalingPlan("cube4", 7, 64, 4, actors=(1, 2), nodes=(1, 3), seconds=20, learner_steps=30),
     # What a 16-core GPU workstation should report, in under 8 minutes there: the paper's search (256
     # simulations) on 6^3 K=25 with 1 to 15 actors (one core stays with the learner), 2 episodes a batch

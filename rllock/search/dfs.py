@@ -145,7 +145,7 @@ class _Guess:
 @dataclass
 class _Expander:
     """Expands the nodes of one restart: samples a node's children (counting expansions, reporting
-    progress) and orders them, under lookahead and with a guide when there is one."""
+    progress) and orders them under lookahead."""
 
     task: Task
     rng: np.random.Generator
@@ -302,9 +302,8 @@ def dfs(
     """One restart: DFS from the root (or `start`) for at most `budget` expansions until a state with
     `target` placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
-    PROGRESS_EVERY seconds. A `guide` may judge the children (`_guided`: all children of a node in one
-    call; `SearchConfig.guide_orders` and what else asks for values); `record` takes every state the
-    search leaves (`Record`)."""
+    PROGRESS_EVERY seconds. With a `guide` the next node's samples are not run ahead (`_Expander`);
+    `record` takes every state the search leaves (`Record`)."""
     nodes = _Expander(task, rng, config, target, stats, report, guide, pool)
     root = initial_state(task) if start is None else start
     stack = [nodes.children_of(root, nodes.sample(root)[0])]

@@ -202,10 +202,11 @@ class Guide:
     params: dict
     source: str  # a checkpoint's path or name, or "untrained (seed N)"
     horizon: int = 20
-    """It judges children with at most this many pieces left: where it was trained (`--max-left`)."""
+    """Dives stop this many pieces before the end (`SearchConfig.dives`): where it was trained
+    (`--max-left`)."""
 
     def values(self, task: Task, states: list[State], shares: list[float]) -> np.ndarray:
-        """Values of `states` with their lookahead shares (`solver.Child`), in one network call padded
+        """Values of `states` with their lookahead shares (`dfs.Child`), in one network call padded
         to a multiple of `PAD` states: a node has 1 to 8 children, and each new batch shape would
         compile the network again."""
         if not states:

@@ -158,7 +158,7 @@ def conv3(x: jax.Array, kernel: jax.Array) -> jax.Array:
 class Upsample2(nn.Module):
     """flax's `ConvTranspose(features, (2, 2, 2), strides=(2, 2, 2))`, with the same parameters, as one
     matmul and a depth-to-space reshape: the 2x2x2 windows do not overlap, so each input voxel alone
-    makes its 8 output voxels. XLA's transposed convolution is about 10x slower on the CPU here."""
+    makes its 8 output voxels. XLA's transposed convolution is much slower on the CPU here."""
 
     features: int
 

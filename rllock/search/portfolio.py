@@ -5,20 +5,19 @@ another on the same task. N seeds side by side, the first assembly taken, cut th
 N workers gain more than their share of a single search's time. Worker 0 runs the given seed, so one
 worker is the plain search; worker i > 0 runs `derive_seed(seed, i)`.
 
-On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process
-has compiled); the others are spawned processes. Worker 0 may also sample a node's children on threads
-(the same search node for node, sooner: `solver.SamplingPool`). A second seed pays by the spread of run
-times, a second thread surely but by less, and by how busy the search keeps it: two threads ran one
-search 1.5-1.8x as fast where they were busy 1.7-1.9 of the time, 1.0-1.3x where a node's samples are
-few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from the start, and those
-workers (the lent ones) are not started while it has them: a spawned process's start-up (imports, the
-compiled code loaded) took CPU from worker 0's threads on every seed, also where it was never let go
-on. From the end of worker 0's first sample on, the crew measures how busy its threads are, the CPU
+On one machine worker 0 runs in this process, as a thread (it starts at once, with what this process has
+compiled); the others are spawned processes. Worker 0 may also sample a node's children on threads (the same
+search node for node, sooner: `dfs.SamplingPool`). A second seed pays by the spread of run times, a second
+thread surely but by less, and by how busy the search keeps it: two threads gain most where both are busy,
+little where a node's samples are few or cheap. So worker 0 has the cores of workers 1..T-1 on T threads from
+the start, and those workers (the lent ones) are not started while it has them: a spawned process's start-up
+(imports, the compiled code loaded) took CPU from worker 0's threads on every seed, also where it was never
+let go on. From the end of worker 0's first sample on, the crew measures how busy its threads are, the CPU
 seconds of its samples over the wall time, every BALANCE_EVERY_SECONDS. Once that share is below
-KEEP_WHILE_BUSY of the T threads (judged from JUDGE_AFTER_SECONDS on), the lent workers are started, each
-on its core, and worker 0 samples alone for the rest of the run. The measure is a ratio of two times on
-one machine, so a slower or faster machine decides alike; the milliseconds a sample costs, would decide
-differently on every machine.
+KEEP_WHILE_BUSY of the T threads (judged from JUDGE_AFTER_SECONDS on), the lent workers are started, each on
+its core, and worker 0 samples alone for the rest of the run. The measure is a ratio of two times on one
+machine, so a slower or faster machine decides alike, where a threshold on the milliseconds a sample costs
+would decide differently on every machine.
 
 Workers put what they find and their progress on a queue; the parent keeps the distinct assemblies and
 stops every worker (an event they poll between node expansions) when it has what it wants, at the time

@@ -58,7 +58,7 @@ def search(
     """Yield distinct valid assemblies (checked by the compiled checkers; the caller verifies before
     writing) until the time limit or `stop()`. Same seed, same sequence. `stats`, when given, is kept up
     to date (and passed to `report` every PROGRESS_EVERY seconds). A `guide` network picks where
-    restarts begin (`SearchConfig.dives`) and, as configured, judges the children (`dfs`); `record`
+    restarts begin (`SearchConfig.dives`); `record`
     takes the states the search leaves with their lookahead shares. A node's children are sampled on
     `threads` threads, or on a `pool` the caller owns (and shuts down). A task that provably has no
     assembly is an error at once (`rllock.core.feasibility`)."""
@@ -91,7 +91,7 @@ def _search(
     start = time.monotonic()
     deadline = start + time_limit
     seen: set[bytes] = set()
-    kept: list[tuple[float, State]] = []  # dive states not yet taken, with their values (`_best_dive`)
+    kept: list[tuple[float, State]] = []  # dive states not yet taken, with their values (`best_dive`)
     solver = RestartSequence(np.random.default_rng(seed))
     diver = RestartSequence(np.random.default_rng([seed, DIVE_STREAM]))
     depth = 0 if guide is None else dive_depth(task, guide)
