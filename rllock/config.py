@@ -247,7 +247,7 @@ def replace_leaves(config: Any, values: dict[str, Any]) -> Any:
     """`config` with the leaf fields named in `values` (at any depth of nesting) replaced."""
     changes = {}
     for f in dataclasses.fields(config):
-        sub = _dataclass_type(f)
+        sub = nested_config(f)
         if sub is not None:
             changes[f.name] = replace_leaves(getattr(config, f.name), values)
         elif f.name in values:
@@ -267,7 +267,7 @@ def from_json(cls: type, doc: dict) -> Any:
         if f.name not in doc:
             continue
         value = doc[f.name]
-        sub = _dataclass_type(f)
+        sub = nested_config(f)
         if sub is not None:
             value = from_json(sub, value)
         elif isinstance(value, list):
@@ -281,7 +281,7 @@ def from_flat(cls: type, doc: dict) -> Any:
     metadata version 1 saved the run's settings)."""
     values = {}
     for f in dataclasses.fields(cls):
-        sub = _dataclass_type(f)
+        sub = nested_config(f)
         if sub is not None:
             values[f.name] = from_flat(sub, doc)
         elif f.name in doc:
@@ -289,8 +289,8 @@ def from_flat(cls: type, doc: dict) -> Any:
     return cls(**values)
 
 
-def _dataclass_type(f: dataclasses.Field) -> type | None:
-    """The nested config class of a field, or None for a leaf."""
+def nested_config(f: dataclasses.Field) -> type | None:
+    """The nested config class of a field, or None for a leaf (the flags walk the same tree)."""
     factory = f.default_factory
     return factory if factory is not dataclasses.MISSING and dataclasses.is_dataclass(factory) else None
 

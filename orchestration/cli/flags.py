@@ -18,7 +18,7 @@ import types
 import typing
 from typing import Any
 
-from rllock.config import _dataclass_type
+from rllock.config import nested_config
 
 
 @functools.cache
@@ -46,7 +46,7 @@ def leaves(cls: type, prefix: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...
     """(path, field, owner class) of every leaf field, depth first."""
     out = []
     for f in dataclasses.fields(cls):
-        sub = _dataclass_type(f)
+        sub = nested_config(f)
         if sub is not None:
             out.extend(leaves(sub, (*prefix, f.name)))
         else:
@@ -148,6 +148,6 @@ def from_flags(cls: type, args: argparse.Namespace) -> Any:
     """The config of class `cls` from parsed flags (nested configs built from their own fields)."""
     values = {}
     for f in dataclasses.fields(cls):
-        sub = _dataclass_type(f)
+        sub = nested_config(f)
         values[f.name] = from_flags(sub, args) if sub is not None else getattr(args, f.name)
     return cls(**values)
