@@ -66,19 +66,26 @@ def _part(module: str) -> str | None:
     return max(found, key=len) if found else None
 
 
-def _imports(path: Path) -> set[str]:
-    """Every project module `path` imports, at module level or inside functions, relative ones resolved."""
-    package = _module_name(path) if path.name == "__init__.py" else _module_name(path).rpartition(".")[0]
-    found = set()
+def _import_statements(path: Path, name: str) -> list[tuple[str, list[str]]]:
+    """Every import of the module `name` (at `path`), at module level or inside functions: (the module it
+    names, relative ones resolved; the names it takes from it, none for `import m`)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = []
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
-            found |= {a.name for a in node.names}
+            found += [(a.name, []) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 parts = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*parts, base] if base else parts)
-            found.add(base)
+            found.append((base, [a.name for a in node.names]))
+    return found
+
+
+def _imports(path: Path) -> set[str]:
+    """Every project module `path` imports, at module level or inside functions, relative ones resolved."""
+    found = {base for base, _ in _import_statements(path, _module_name(path))}
     return {m for m in found if m.split(".")[0] in TOP_NAMES}
 
 
@@ -117,17 +124,11 @@ def _runs(path: Path, name: str, modules: set[str]) -> set[str]:
     """The project modules (of `modules`) whose code importing module `name` (at `path`) may run, at module
     level or inside functions: each module an import names, and the packages above it (their __init__
     runs first). A package's __init__ importing its own submodules does not import itself."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    named = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            named += [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join([*parts, base] if base else parts)
-            named += [base, *(f"{base}.{a.name}" for a in node.names)]  # a name may be a submodule
+    named = [
+        m
+        for base, names in _import_statements(path, name)
+        for m in (base, *(f"{base}.{n}" for n in names))  # a name may be a submodule
+    ]
     found = {".".join(m.split(".")[:i]) for m in named for i in range(1, m.count(".") + 2)} & modules
     return found - {name} if path.name == "__init__.py" else found
 
@@ -332,21 +333,10 @@ def test_the_folders_are_installed_inside_rllock_under_no_generic_name():
         f"{path.relative_to(ROOT)}: {m}"
         for package in PACKAGES
         for path in _sources(package)
-        for m in _named(path)
+        for m, _ in _import_statements(path, _module_name(path))
         if m.split(".")[0] in ("actors", "learner", "orchestration", "cluster")
     }
     assert bare == set()
     pyproject = (ROOT / "pyproject.toml").read_text()
     assert 'include = ["rllock*"]' in pyproject
     assert 'rllock = "rllock.orchestration.cli.main:main"' in pyproject
-
-
-def _named(path: Path) -> set[str]:
-    """Every module name `path` imports absolutely, at module level or inside functions."""
-    found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            found |= {a.name for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
-            found.add(node.module)
-    return found
