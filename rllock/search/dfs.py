@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -25,9 +25,6 @@ from rllock.core.env import (
     tightest_subset,
 )
 from rllock.search.search_config import SearchConfig
-
-if TYPE_CHECKING:  # the guide brings JAX; the plain search starts without it
-    from rllock.search.guide import Guide
 
 # How often a running search reports its progress, in seconds.
 PROGRESS_EVERY = 0.5
@@ -153,7 +150,6 @@ class _Expander:
     target: int
     stats: SearchStats
     report: Callable[[SearchStats], None] | None
-    guide: Guide | None
     pool: SamplingPool | None = None
     expansions: int = 0
     guess: _Guess | None = None
@@ -184,7 +180,7 @@ class _Expander:
         ]
         waiting = set(futures)
         while waiting:
-            if len(waiting) < pool.threads and self.guide is None:
+            if len(waiting) < pool.threads:
                 self._guess_next(states, futures, len(waiting))
             ahead: set[Future] = (
                 {f for f in self.guess.futures.values() if not f.done()} if self.guess else set()
@@ -294,7 +290,6 @@ def dfs(
     stats: SearchStats,
     stop: Callable[[], bool] = never,
     report: Callable[[SearchStats], None] | None = None,
-    guide: Guide | None = None,
     record: Record | None = None,
     start: State | None = None,
     pool: SamplingPool | None = None,
@@ -302,9 +297,8 @@ def dfs(
     """One restart: DFS from the root (or `start`) for at most `budget` expansions until a state with
     `target` placed pieces, the deadline, or `stop()`. Returns (that state or None, expansions used); `stats`
     counts the expansions and keeps the deepest state, and `report(stats)` is called every
-    PROGRESS_EVERY seconds. With a `guide` the next node's samples are not run ahead (`_Expander`);
-    `record` takes every state the search leaves (`Record`)."""
-    nodes = _Expander(task, rng, config, target, stats, report, guide, pool)
+    PROGRESS_EVERY seconds; `record` takes every state the search leaves (`Record`)."""
+    nodes = _Expander(task, rng, config, target, stats, report, pool)
     root = initial_state(task) if start is None else start
     stack = [nodes.children_of(root, nodes.sample(root)[0])]
     path = [Child(root, None, 1.0)]  # the child each stack level holds the children of
@@ -337,5 +331,5 @@ def _left(states: list[Child], record: Record | None) -> None:
 def expand(task: Task, state: State, *, seed: int, config: SearchConfig = SearchConfig()) -> list[Child]:
     """The children of `state` as the search makes them (sampled, the lookahead's count kept as their
     share, those with no continuation dropped), in pop order: best last."""
-    nodes = _Expander(task, np.random.default_rng(seed), config, task.pieces - 1, SearchStats(), None, None)
+    nodes = _Expander(task, np.random.default_rng(seed), config, task.pieces - 1, SearchStats(), None)
     return nodes.children_of(state, nodes.sample(state)[0])

@@ -121,7 +121,6 @@ def _search(
             stats,
             stop,
             report,
-            guide,
             record,
             begin,
             pool,
