@@ -118,4 +118,6 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
     assert "SIGTERM: saving a checkpoint" in text and "Traceback" not in text
     step = int(text.split("stopped by SIGTERM at learner step ")[1].split(";")[0])
     assert step >= before and _latest(logdir) == step
+    # The command's last words, as a terminal's Ctrl-C gets them too (the same stop, tests/test_stopping.py)
+    assert f"train: stopped at learner step {step}; resume with: rllock train --resume {logdir}" in text
     assert (logdir / "replay.npz").exists() and list(logdir.glob("events.out.tfevents.*"))
