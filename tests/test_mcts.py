@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import gc
+
 import jax
 import numpy as np
 import pytest
@@ -100,14 +102,28 @@ def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
 
 
 def test_groups_share_one_compiled_search_and_play_as_if_each_had_its_own():
-    from rllock.search.mcts import Searcher
+    from rllock.search.mcts import CompiledSearch, Searcher
     from rllock.search.network import PolicyValueNet
 
     task = make_task("box:4x4x2", 4)
     net = NetConfig(canvas=4, features=(4, 8))
     shared = searchers(net, SMALL, ChunkStore, task, episodes=6, groups=2)
     assert shared[0].compiled is shared[1].compiled and shared[0].slot != shared[1].slot
-    alone = [Searcher(PolicyValueNet(net), SMALL, ChunkStore, task, 3) for _ in range(2)]
+    # Searchers made later in the process, for a task of the same shape, reuse the same program.
+    again = Searcher(PolicyValueNet(net), SMALL, ChunkStore, make_task("box:4x4x2", 4), 3)
+    assert again.compiled is shared[0].compiled and again.slot not in (shared[0].slot, shared[1].slot)
+    assert searchers(net, SMALL, ChunkStore, task, 4, 1)[0].compiled is not shared[0].compiled  # batch 4
+    alone = [
+        Searcher(
+            PolicyValueNet(net),
+            SMALL,
+            ChunkStore,
+            task,
+            3,
+            CompiledSearch(PolicyValueNet(net), SMALL, ChunkStore, task, 3),
+        )
+        for _ in range(2)
+    ]
     assert alone[0].compiled is not alone[1].compiled
     params = init_params(net, jax.random.PRNGKey(1))
     key = jax.random.PRNGKey(2)
@@ -118,3 +134,17 @@ def test_groups_share_one_compiled_search_and_play_as_if_each_had_its_own():
         np.testing.assert_array_equal(a.labels, b.labels)
         np.testing.assert_array_equal(a.actions, b.actions)
         np.testing.assert_allclose(a.pi, b.pi)
+    gc.collect()
+    assert not shared[0].compiled.stores  # a play's node store goes with it, not with the shared program
+
+
+def test_the_process_keeps_its_most_recently_used_searches_only():
+    from rllock.search.mcts import SharedSearches
+
+    shared = SharedSearches(limit=2)
+    task, net = make_task("box:4x4x2", 4), NetConfig(canvas=4, features=(4, 8))
+    first, second = (shared.get(net, SMALL, ChunkStore, task, b) for b in (1, 2))
+    assert shared.get(net, SMALL, ChunkStore, make_task("box:4x4x2", 4), 1) is first  # the newest now
+    shared.get(net, SMALL, ChunkStore, task, 3)
+    assert shared.get(net, SMALL, ChunkStore, task, 1) is first
+    assert shared.get(net, SMALL, ChunkStore, task, 2) is not second  # let go, made anew

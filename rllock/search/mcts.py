@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -147,7 +149,8 @@ class CompiledSearch:
         self.space = space
         self.canvas = net.config.canvas_side()
         self.batch = batch
-        self.stores: dict[int, NodeStore] = {}
+        # Weak: a store lives as long as the play that made it, not as long as this shared program.
+        self.stores: weakref.WeakValueDictionary[int, NodeStore] = weakref.WeakValueDictionary()
         self._shapes = _expansion_shapes(
             batch, space.action_shape(task, config), self.canvas, planes_of(net.config)
         )
@@ -211,6 +214,34 @@ class CompiledSearch:
         return out.action, out.action_weights, value
 
 
+class SharedSearches:
+    """The compiled searches of a process, by shape (network, search settings, action space, M x n,
+    batch), the least recently used beyond `limit` let go: tracing, lowering and loading a search takes
+    seconds, and a process asks for the same shape again and again (each validation of a run, every
+    checkpoint a bench compares, each job of the service)."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self._found: OrderedDict[tuple, CompiledSearch] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(
+        self, net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, batch: int
+    ) -> CompiledSearch:
+        key = (net, config, space, space.action_shape(task, config), batch)
+        with self._lock:
+            found = self._found.get(key)
+            if found is None:
+                found = self._found[key] = CompiledSearch(PolicyValueNet(net), config, space, task, batch)
+                while len(self._found) > self.limit:
+                    self._found.popitem(last=False)
+            self._found.move_to_end(key)
+            return found
+
+
+SHARED = SharedSearches(16)
+
+
 class Searcher:
     """A batched search for one task and action space, through a `CompiledSearch` of its shape (its own,
     or one shared with other searchers); `play` gives it a fresh store of kind `space` per batch."""
@@ -224,7 +255,7 @@ class Searcher:
         batch: int,
         compiled: CompiledSearch | None = None,
     ):
-        self.compiled = CompiledSearch(net, config, space, task, batch) if compiled is None else compiled
+        self.compiled = SHARED.get(net.config, config, space, task, batch) if compiled is None else compiled
         self.batch = batch
         self.slot = self.compiled.new_slot()
 
@@ -331,10 +362,8 @@ def searchers(
     net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, episodes: int, groups: int
 ) -> list[Searcher]:
     """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
-    shared: dict[int, CompiledSearch] = {}
     found = []
     for size in group_sizes(episodes, groups):
-        if size not in shared:
-            shared[size] = CompiledSearch(PolicyValueNet(net), config, space, task, size)
-        found.append(Searcher(shared[size].net, config, space, task, size, shared[size]))
+        compiled = SHARED.get(net, config, space, task, size)
+        found.append(Searcher(compiled.net, config, space, task, size, compiled))
     return found
