@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
+from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -48,13 +48,20 @@ def ppo_update_step(
     return optax.apply_updates(params, updates), opt_state, policy, value_loss
 
 
+@lru_cache(maxsize=32)
+def adam(learning_rate: float) -> optax.GradientTransformation:
+    """One Adam per learning rate in a process: the jitted steps take the optimizer as a static argument,
+    so a new one for each learner would trace and compile the same step again."""
+    return optax.adam(learning_rate)
+
+
 class AdamState:
     """Parameters, Adam's state, the learner step and the PRNG key: everything a resume needs, and the
     seeds of the replay samples. `key` is a raw uint32[2] PRNG key (jax.random.PRNGKey), kept raw so
     that checkpoints store it as is; `init` makes the parameters from a key split off it."""
 
     def __init__(self, init: Callable[[jax.Array], dict], learning_rate: float, key: jax.Array):
-        self.optimizer = optax.adam(learning_rate)
+        self.optimizer = adam(learning_rate)
         init_key, self.key = jax.random.split(key)
         self.params = init(init_key)
         self.opt_state = self.optimizer.init(self.params)

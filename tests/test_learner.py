@@ -47,6 +47,26 @@ def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
     assert sample["labels"].shape == (5, task.size) and sample["chunks"].dtype == np.int16
 
 
+def test_learners_of_one_network_and_learning_rate_share_one_compiled_step(task_and_episodes):
+    from rllock.learner.learner import update_step
+
+    task, eps = task_and_episodes
+    buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
+    buf.add_many(eps)
+    sample = buf.sample(8, seed=0)
+    config = LearnerConfig(learning_rate=2e-3, batch_size=8)
+    first = Learner(SingleTask.of(task, 4), NET, config, jax.random.PRNGKey(0))
+    first.update(sample)
+    compiled = update_step._cache_size()
+    second = Learner(SingleTask.of(task, 4), NET, config, jax.random.PRNGKey(1))
+    second.update(sample)
+    assert second.optimizer is first.optimizer and update_step._cache_size() == compiled
+    Learner(SingleTask.of(task, 4), NET, LearnerConfig(learning_rate=1e-3), jax.random.PRNGKey(0)).update(
+        sample
+    )
+    assert update_step._cache_size() == compiled + 1  # another learning rate: another step
+
+
 def test_learner_fits_a_fixed_batch(task_and_episodes):
     task, eps = task_and_episodes
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
