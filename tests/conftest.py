@@ -13,6 +13,14 @@ import pytest
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """JAX's persistent compilation cache in every test process too, as the `rllock` command sets it up
+    (`rllock.process.setup_jax_cache`): a program one process compiled, the others read back."""
+    from rllock.process import setup_jax_cache
+
+    setup_jax_cache()
+
+
 @pytest.fixture(scope="session")
 def data() -> Path:
     """The data vendored in the package (`rllock/data/`: published/ assemblies, shapes/)."""

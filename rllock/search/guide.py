@@ -62,7 +62,9 @@ class GuideNet(nn.Module):
         return nn.Dense(1)(x)[:, 0]
 
 
+@partial(jax.jit, static_argnums=0)
 def init_guide(config: GuideConfig, key: jax.Array) -> dict:
+    """Fresh guide parameters, initialised as one compiled program (see `init_params`)."""
     w = config.window
     window = jnp.zeros((1, w, w, w, channels(config)))
     return GuideNet(config).init(key, window, jnp.zeros((1, GLOBALS)))["params"]

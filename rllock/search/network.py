@@ -25,6 +25,8 @@ features through a small MLP and a sigmoid, since the target (the cumulative rew
 
 from __future__ import annotations
 
+from functools import partial
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -219,7 +221,10 @@ def chunk_logits(voxel_logits: jax.Array, chunks: jax.Array, valid: jax.Array) -
     return jnp.where(valid, mean, MASKED_LOGIT)
 
 
+@partial(jax.jit, static_argnums=0)
 def init_params(config: NetConfig, key: jax.Array) -> dict:
+    """Fresh parameters for `config`, initialised as one compiled program: run op by op, the network's
+    initialisation compiles each of its many small operations on its own, seconds on a fresh start."""
     dummy = jnp.zeros((1, config.canvas, config.canvas, config.canvas, planes_of(config)), jnp.float32)
     return PolicyValueNet(config).init(key, dummy)["params"]
 
