@@ -21,7 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rllock.config import TrainConfig  # noqa: E402
-from rllock.orchestration.cli.main import main  # noqa: E402
+from rllock.orchestration.cli.main import entry  # noqa: E402
 
 # Ray Jobs sets this in the environment of the job's entry point.
 JOB_ENV = "RAY_JOB_CONFIG_JSON_ENV_VAR"
@@ -56,4 +56,4 @@ def _anchored(args: list[str], home: Path) -> list[str]:
 
 
 if __name__ == "__main__":
-    sys.exit(main(job_args(sys.argv[1:], in_job=JOB_ENV in os.environ)))
+    sys.exit(entry(job_args(sys.argv[1:], in_job=JOB_ENV in os.environ)))

@@ -34,10 +34,10 @@ def _child(request: dict) -> None:
     # The server's stdin buffer holds the next requests, not the command's input.
     sys.stdin = open(0, closefd=False)
     os.chdir(request["cwd"])
-    from rllock.orchestration.cli.main import main
+    from rllock.orchestration.cli.main import entry
 
     sys.argv = [request["entry"], *request["args"]]
-    sys.exit(main(request["args"]))
+    sys.exit(entry(request["args"]))
 
 
 def _wait(pid: int, timeout: float) -> dict:

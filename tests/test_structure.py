@@ -339,4 +339,4 @@ def test_the_folders_are_installed_inside_rllock_under_no_generic_name():
     assert bare == set()
     pyproject = (ROOT / "pyproject.toml").read_text()
     assert 'include = ["rllock*"]' in pyproject
-    assert 'rllock = "rllock.orchestration.cli.main:main"' in pyproject
+    assert 'rllock = "rllock.orchestration.cli.main:entry"' in pyproject

@@ -2,6 +2,6 @@
 
 import sys
 
-from rllock.orchestration.cli.main import main
+from rllock.orchestration.cli.main import entry
 
-sys.exit(main())
+sys.exit(entry())
