@@ -222,11 +222,11 @@ def test_every_check_agrees_with_the_reference_with_hundreds_of_pieces(removal):
     for depth in (50, 100, 150, 190):
         state = State(np.where(deep.labels <= depth, deep.labels, 0).astype(np.int16), depth)
         mine = sample_accepted(task, state, seed=depth, num_samples=256, closed_share=0.5)[:10]
-        chunks = np.concatenate([raw_chunks(task, state, rng, 40), mine])
+        chunks = np.concatenate([raw_chunks(task, state, rng, 20), mine])
         got = checkers.check_chunks(task.topology.arrays, state.labels, depth + 1, chunks, removal == "path")
         for chunk, bits in zip(chunks, got):
             parts, rest = parts_after(task, state, chunk)
             assert bits == reference_bits(parts, rest, removal), (depth, chunk.tolist())
             compared += 1
             accepted += bits == checkers.ALL_CHECKS
-    assert compared >= 150 and 20 < accepted < compared
+    assert compared >= 80 and 20 < accepted < compared

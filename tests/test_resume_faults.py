@@ -126,9 +126,9 @@ def test_a_killed_actor_restarts_a_killed_run_resumes_past_a_corrupted_checkpoin
     with open(f"{ray_tmp}/ray/ray_current_cluster", "w") as f:
         f.write("127.0.0.1:9")
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | {"RAY_TMPDIR": ray_tmp}
-    # Long enough for learner steps past the kill on a slow CI machine, Ray's start included: the
-    # restored buffer feeds the learner at once.
-    minutes = 0.75
+    # Long enough for learner steps on a slow CI machine, Ray's start and the actor's compilation
+    # included (the learner waits for new episodes).
+    minutes = 1.0
     began = time.monotonic()
     try:
         done = subprocess.run(
@@ -144,12 +144,12 @@ def test_a_killed_actor_restarts_a_killed_run_resumes_past_a_corrupted_checkpoin
     elapsed = time.monotonic() - began
     out, err = done.stdout, done.stderr
     assert done.returncode == 0, err
-    assert elapsed <= minutes * 60 + 30, elapsed
+    assert elapsed <= minutes * 60 + 30, (elapsed, err)
     assert "falling back" in err and f"resuming {logdir} at learner step {killed_at[-2]}" in err
     assert "validation skipped" in err
-    after = _steps(logdir)
-    assert after[-1] > killed_at[-1] >= killed_at[-2] > 0  # the step counter goes on
-    assert out.startswith("train: ") and f"{after[-1]} learner steps" in out
+    # The step counter goes on from the checkpoint it resumed at, and the run's last step is saved.
+    final = re.match(r"train: (\d+) learner steps", out)
+    assert final and int(final[1]) > killed_at[-2] > 0 and int(final[1]) in _steps(logdir), (out, err)
     for needle in NOISE:
         assert needle not in err, f"{needle!r} in:\n{err}"
     lines = err.strip().splitlines()

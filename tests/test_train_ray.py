@@ -15,7 +15,7 @@ from rllock.errors import RLLockError
 from rllock.orchestration.train import train
 
 pytestmark = [pytest.mark.slow, pytest.mark.ray]
-STEPS = 60
+STEPS = 30
 
 
 _RUNS: dict[str, tuple] = {}
