@@ -11,7 +11,7 @@ if ! { command -v chromium && command -v chromedriver; } >/dev/null 2>&1 && [ "$
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
     || echo "could not install chromium; the browser tests will be skipped" >&2
 fi
-# Lint, format and type checks first: a style or type error fails fast, before the 10-minute suite.
+# Lint, format and type checks first: a style or type error fails fast, before the minutes of pytest.
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 .venv/bin/mypy
