@@ -49,9 +49,8 @@ def reference() -> str:
 
 def entry(argv: list[str] | None = None) -> int:
     """The `rllock` command as its process runs it (the console script, `python -m`): `main`, then
-    the objects left are frozen out of the garbage collector, whose last pass over them (the libraries'
-    millions) made every command half a second longer on its way out, for memory the process gives back
-    anyway."""
+    the objects left are frozen out of the garbage collector. Its last pass over them (the libraries'
+    millions) would lengthen every command on its way out, for memory the process gives back anyway."""
     try:
         return main(argv)
     finally:

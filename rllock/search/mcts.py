@@ -216,8 +216,8 @@ class CompiledSearch:
 
 class SharedSearches:
     """The compiled searches of a process, by shape (network, search settings, action space, M x n,
-    batch), the least recently used beyond `limit` let go: tracing, lowering and loading a search takes
-    seconds, and a process asks for the same shape again and again (each validation of a run, every
+    batch), the least recently used beyond `limit` let go: tracing, lowering and loading a search is
+    slow, and a process asks for the same shape again and again (each validation of a run, every
     checkpoint a bench compares, each job of the service)."""
 
     def __init__(self, limit: int):

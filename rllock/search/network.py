@@ -224,7 +224,7 @@ def chunk_logits(voxel_logits: jax.Array, chunks: jax.Array, valid: jax.Array) -
 @partial(jax.jit, static_argnums=0)
 def init_params(config: NetConfig, key: jax.Array) -> dict:
     """Fresh parameters for `config`, initialised as one compiled program: run op by op, the network's
-    initialisation compiles each of its many small operations on its own, seconds on a fresh start."""
+    initialisation compiles each of its many small operations on its own, most of a fresh start."""
     dummy = jnp.zeros((1, config.canvas, config.canvas, config.canvas, planes_of(config)), jnp.float32)
     return PolicyValueNet(config).init(key, dummy)["params"]
 
