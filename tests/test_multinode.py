@@ -1,10 +1,12 @@
 """Training on a real multi-node Ray cluster on this machine, submitted through Ray Jobs: a head (no
 CPUs, the Jobs API) and two worker nodes of one CPU each, every node with its own raylet, all on
 127.0.0.1 (`ray.cluster_utils.Cluster`; with RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 Ray keeps loopback
-addresses). A worker node is killed mid-run, a new one joins, and `ray job stop` ends the run."""
+addresses). The same cluster first runs `solve --address`. A worker node is killed mid-run, a new one
+joins, and `ray job stop` ends the run."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -13,10 +15,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from helpers import actor_nodes, tiny_flags
+from helpers import actor_nodes, run_cli, tiny_flags
 
 from rllock.config import SelfPlayConfig
+from rllock.core.verifier import verify_labels
+from rllock.files.assembly import read_assembly
 from rllock.files.checkpoint import saved_steps
+from rllock.search.portfolio import worker_seed
 
 ROOT = Path(__file__).resolve().parents[1]
 RAY = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
@@ -42,7 +47,7 @@ def _run(command: list[str]) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 @pytest.mark.ray
-def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(cluster, tmp_path):
+def test_a_multinode_cluster_solves_then_trains_through_a_lost_node_until_ray_job_stop(cluster, tmp_path):
     from ray.job_submission import JobStatus, JobSubmissionClient
 
     ray_cluster, api, add_worker = cluster
@@ -50,6 +55,25 @@ def test_multinode_training_survives_a_lost_node_and_stops_with_ray_job_stop(clu
     ray_cluster.wait_for_nodes()
     nodes = [ray_cluster.head_node, *workers]
     assert {n.node_ip_address for n in nodes} == {"127.0.0.1"}  # loopback only
+
+    # `solve --address` on the same cluster first: its workers are Ray actors, one on each worker node;
+    # the assemblies are verified and written, and no worker is left alive for the training after it.
+    out = tmp_path / "solved"
+    code, stdout, err = run_cli(
+        "solve", "--shape", "cube4", "--pieces", "7", "--count", "2", "--workers", "2",
+        "--address", ray_cluster.address, "--out", str(out),
+    )  # fmt: skip
+    assert code == 0 and "solve: 2 valid assemblies" in stdout, err
+    line = next(x for x in err.splitlines() if "search workers on" in x)
+    assert "on 2 Ray node(s)" in line and all(w.node_id in line for w in workers), line
+    for folder in sorted(out.glob("assembly_*")):
+        labels, meta = read_assembly(folder)
+        assert verify_labels(labels).valid
+        method = json.loads((folder / "assembly.json").read_text())["method"]
+        assert method["workers"] == 2 and method["ray"] is True
+        assert meta["seed"] in {worker_seed(0, 0), worker_seed(0, 1)}
+    assert not actor_nodes(api, "_RayWorker")
+
     logdir = tmp_path / "run"
     job = "rllock-multinode-" + tmp_path.name[-8:]
     command = [RAY, "job", "submit", "--address", api, "--working-dir", ".", "--submission-id", job]

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 import pytest
-from helpers import actor_nodes, run_cli
+from helpers import run_cli
 
 from rllock.core.env import make_task
 from rllock.core.verifier import verify_labels
@@ -220,32 +220,6 @@ def test_solve_with_workers_writes_verified_assemblies_that_name_their_seed(tmp_
         "solve", "--shape", "cube4", "--pieces", "7", "--threads", "2", "--workers", "2", "--out", str(out)
     )
     assert code == 2 and err.strip().startswith("rllock: error: --threads is for one search; --workers N")
-
-
-@pytest.mark.slow
-@pytest.mark.ray
-def test_solve_on_a_ray_cluster_runs_one_worker_on_each_node(cluster, tmp_path):
-    """`solve --address`: the workers are Ray actors on a real cluster of two one-CPU worker nodes (and a
-    head with none) on 127.0.0.1; each node runs one, the assemblies are verified and written, and no
-    worker is left alive."""
-    created, api, add_worker = cluster
-    nodes = {add_worker().node_id for _ in range(2)}
-    created.wait_for_nodes()
-    out = tmp_path / "o"
-    code, stdout, err = run_cli(
-        "solve", "--shape", "cube4", "--pieces", "7", "--count", "2", "--workers", "2",
-        "--address", created.address, "--out", str(out),
-    )  # fmt: skip
-    assert code == 0 and "solve: 2 valid assemblies" in stdout, err
-    line = next(x for x in err.splitlines() if "search workers on" in x)
-    assert "on 2 Ray node(s)" in line and all(node in line for node in nodes), line
-    for folder in sorted(out.glob("assembly_*")):
-        labels, meta = read_assembly(folder)
-        assert verify_labels(labels).valid
-        method = json.loads((folder / "assembly.json").read_text())["method"]
-        assert method["workers"] == 2 and method["ray"] is True
-        assert meta["seed"] in {worker_seed(0, 0), worker_seed(0, 1)}
-    assert not actor_nodes(api, "_RayWorker")
 
 
 def test_solve_on_an_address_nothing_answers_is_one_line_at_once(tmp_path):
