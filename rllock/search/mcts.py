@@ -361,9 +361,8 @@ def play_groups(
 def searchers(
     net: NetConfig, config: MCTSConfig, space: type[NodeStore], task: Task, episodes: int, groups: int
 ) -> list[Searcher]:
-    """One compiled search per lockstep group, for `episodes` split into `groups` (see `play_groups`)."""
-    found = []
-    for size in group_sizes(episodes, groups):
-        compiled = SHARED.get(net, config, space, task, size)
-        found.append(Searcher(compiled.net, config, space, task, size, compiled))
-    return found
+    """A searcher per lockstep group, for `episodes` split into `groups` (see `play_groups`); groups of
+    one size share one compiled search (`SHARED`)."""
+    return [
+        Searcher(PolicyValueNet(net), config, space, task, size) for size in group_sizes(episodes, groups)
+    ]
