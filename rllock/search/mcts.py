@@ -154,6 +154,9 @@ class CompiledSearch:
         self._shapes = _expansion_shapes(
             batch, space.action_shape(task, config), self.canvas, planes_of(net.config)
         )
+        # The root's evaluation is a program of its own: without the host callback, JAX's disk cache
+        # keeps it, and the search, which no cache can keep, holds one copy of the network, not two.
+        self._root = jax.jit(self._evaluate)
         self._jitted = jax.jit(self._tree_search)
         self._compiled: Any = None
         self._lock = threading.Lock()
@@ -168,7 +171,8 @@ class CompiledSearch:
     def run(self, slot: int, params, key, roots, planes, chunks, valid):
         """The search for the searcher in `slot`; compiled ahead of time on the first call, under a lock,
         so that groups starting together do not compile it each."""
-        args = ((params, jnp.int32(slot)), key, roots, planes, chunks, valid)
+        logits, value = self._root(params, planes, chunks, valid)
+        args = ((params, jnp.int32(slot)), key, roots, logits, value, valid)
         with self._lock:
             if self._compiled is None:
                 self._compiled = self._jitted.lower(*args).compile()
@@ -197,8 +201,7 @@ class CompiledSearch:
         )
         return out, kids
 
-    def _tree_search(self, params_slot, key, roots, planes, chunks, valid):
-        logits, value = self._evaluate(params_slot[0], planes, chunks, valid)
+    def _tree_search(self, params_slot, key, roots, logits, value, valid):
         root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
         out = mctx.gumbel_muzero_policy(
             params_slot,
