@@ -24,13 +24,15 @@ def test_the_plan_fits_the_machine_it_runs_on():
 @pytest.mark.slow
 @pytest.mark.ray
 def test_the_workstation_preset_runs_small_on_this_machine_over_three_nodes():
-    small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2"]
+    small = ["--shape", "box:4x4x2", "--pieces", "3", "--simulations", "8", "--episodes-per-batch", "2",
+             "--features", "4,8"]  # fmt: skip
     code, out, err = run_cli(
         "bench", "scaling", "--preset", "workstation", *small, "--actors", "2", "--nodes", "3",
         "--seconds", "2", "--learner-steps", "2", "--json", timeout=400,
     )  # fmt: skip
     assert code == 0, out + err
     report = json.loads(out)
+    assert report["plan"]["features"] == [4, 8] and report["canvas"] == 4
     rows = {(r["nodes"], r["actors"]): r for r in report["rows"]}
     assert set(rows) == {(3, a) for a in report["plan"]["actors"]}
     for (nodes, actors), row in rows.items():

@@ -162,6 +162,9 @@ def _add_scaling(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--nodes", help="comma-separated node counts (1: one node with every core)")
     p.add_argument("--seconds", type=positive_float, help="each timed window")
     p.add_argument("--learner-steps", type=int, help="timed steps of the learner alone, per platform")
+    p.add_argument(
+        "--features", help="the network's channels per level, as `train --features` (default 16,32,64)"
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=entry.cmd_bench_scaling)
 

@@ -231,6 +231,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
             ("nodes", args.nodes and counts(args.nodes, "--nodes")),
             ("seconds", args.seconds),
             ("learner_steps", args.learner_steps),
+            ("features", args.features and counts(args.features, "--features")),
         )
         if value is not None
     }

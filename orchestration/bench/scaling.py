@@ -51,6 +51,7 @@ class ScalingPlan:
     learner_steps: int  # timed steps of the learner alone, per platform
     batch_size: int = LearnerConfig().batch_size
     broadcasts: int = 5
+    features: tuple[int, ...] = NetConfig().features  # the network's width per level, as `train` has it
 
 
 PRESETS = {
@@ -214,7 +215,7 @@ def bench_scaling(plan: ScalingPlan, cores: int | None = None) -> dict:
     cores = cores or os.cpu_count() or 1
     plan = fit_to_machine(plan, cores)
     task = make_task(plan.shape, plan.pieces)
-    net = fit_canvas(task, NetConfig())
+    net = fit_canvas(task, NetConfig(features=plan.features))
     mcts = MCTSConfig(simulations=plan.simulations)
     workload = SingleTask.of(task, net.canvas_side())
     rows = []
