@@ -225,48 +225,11 @@ def test_box_symmetries_map_states_to_states_of_the_moved_shape_with_the_same_ch
     assert compared >= 30 and len(maps_used) > 4  # several distinct images of the shape
 
 
-def test_multitask_selfplay_fills_a_canvas_buffer_the_learner_trains_on():
-    """A worker on a task set plays a drawn task, its episodes come as canvas states, and the learner's
-    planes for them equal the single-task encoding of the same states."""
-    tasks = parse_tasks("box:4x3x2:3-4,cube3:3", canvas=4)
-    net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
-    mcts = MCTSConfig(simulations=4, max_considered=4, raw_samples=64, candidates=4)
-    worker = SelfPlayWorker(PlaySpec(ManyTasks(tasks), net, mcts, "rl-lock", episodes=4), seed=0)
-    worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
-    buffer = ReplayBuffer(100, 64, 4, tasks.max_piece_size())
-    groups = set()
-    for _ in range(4):
-        episodes, stats = worker.play()
-        groups.add(stats.group)
-        assert all(e.labels.shape[1] == 64 for e in episodes)
-        buffer.add_many(episodes, stats.pieces)
-    assert groups == {0, 1} and len(worker.compiled) >= 2  # n = 6, 8 (box) and 9 (cube3)
-    learner = Learner(ManyTasks(tasks), net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
-    sample = buffer.sample(8, seed=0)
-    planes, chunks, valid, _, _ = learner.prepare(sample)
-    for row in range(8):
-        k = int(sample["pieces"][row])
-        on = sample["labels"][row] >= 0
-        size = int(on.sum())
-        grid = on.reshape(4, 4, 4)
-        task = make_task(crop(grid), k)
-        labels = sample["labels"][row][canvas_index(task, 4)]
-        want = encode_batch(task, labels[None], sample["placed"][row : row + 1], 4, True)[0]
-        np.testing.assert_allclose(planes[row], want)
-        assert task.piece_size == size // k
-        real = chunks[row][valid[row]]
-        assert ((real >= 0).sum(axis=1) == task.piece_size).all()
-    before = learner.params
-    learner.update(sample)
-    assert learner.step == 1 and not all(
-        np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params))
-    )
-
-
 def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on():
-    """Groups on a 4^3 and an 8^3 canvas: states are stored on 8^3, every batch comes from one canvas,
-    cropped to it, and the learner's planes equal the single-task encoding on that canvas; both kinds
-    of batch update the network (one network, two compiled shapes)."""
+    """A worker on a task set plays a drawn task (groups on a 4^3 and an 8^3 canvas); its episodes come
+    as canvas states, stored on 8^3. Every batch comes from one canvas, cropped to it, and the learner's
+    planes equal the single-task encoding of the same states on that canvas; both kinds of batch update
+    the network (one network, two compiled shapes)."""
     tasks = parse_tasks("box:4x3x2:3-4,cube3:3@8", canvas=4)
     assert [g.canvas for g in tasks.groups] == [4, 8] and tasks.store_canvas == 8
     net = NetConfig(canvas=4, features=(4, 8), task_planes=True)
@@ -274,13 +237,14 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
     worker = SelfPlayWorker(PlaySpec(ManyTasks(tasks), net, mcts, "rl-lock", episodes=4), seed=0)
     worker.set_weights(init_params(net, jax.random.PRNGKey(0)), 0)
     buffer = ReplayBuffer(400, 512, 4, tasks.max_piece_size(), store_canvas=8)
-    played = set()
+    played, groups = set(), set()
     for _ in range(4):
         episodes, stats = worker.play()
         played.add(stats.canvas)
+        groups.add(stats.group)
         assert all(e.labels.shape[1] == 512 for e in episodes)
         buffer.add_many(episodes, stats.pieces, stats.canvas)
-    assert played == {4, 8} and {c for _, c in worker.compiled} == {4, 8}
+    assert played == {4, 8} and groups == {0, 1} and {c for _, c in worker.compiled} == {4, 8}
     learner = Learner(ManyTasks(tasks), net, LearnerConfig(batch_size=8), jax.random.PRNGKey(1))
     seen = set()
     for seed in range(8):
@@ -293,6 +257,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
         for row in range(8):
             on = sample["labels"][row] >= 0
             task = make_task(crop(on.reshape((side,) * 3)), int(sample["pieces"][row]))
+            assert task.piece_size == int(on.sum()) // task.pieces
             assert task.shape_name and (side == 4) == (task.topology.dims == (4, 3, 2))
             labels = sample["labels"][row][canvas_index(task, side)]
             want = encode_batch(task, labels[None], sample["placed"][row : row + 1], side, True)[0]
@@ -302,7 +267,7 @@ def test_a_run_on_two_canvases_learns_each_batch_on_the_canvas_it_was_played_on(
             assert on[real[real >= 0]].all()  # candidates lie on the shape, on the cropped canvas
         before = learner.params
         learner.update(sample)
-        assert not all(
+        assert learner.step == seed + 1 and not all(
             np.array_equal(a, b) for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(learner.params))
         )
     assert seen == {4, 8}
