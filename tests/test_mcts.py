@@ -80,57 +80,37 @@ def test_successful_episodes_are_valid_assemblies(episodes):
             assert verify_labels(task.topology.to_grid(final_labels(task, e.final))).valid
 
 
-def test_groups_in_threads_equal_the_same_groups_played_one_after_another():
-    """play_groups runs lockstep groups concurrently (XLA and numba without the GIL); the episodes must
-    not depend on that: each group's are those of a plain play with its own key and seed."""
-    task = make_task("box:4x4x2", 3)
-    config = NetConfig(canvas=4, features=(4, 8))
-    params = init_params(config, jax.random.PRNGKey(0))
-    group_searchers = searchers(config, SMALL, ChunkStore, task, 5, 2)
-    assert [s.batch for s in group_searchers] == [3, 2] and group_sizes(5, 9) == [1] * 5
-    key = jax.random.PRNGKey(4)
-    together = play_groups(group_searchers, params, task, key, seed=11)
-    apart = [
-        e
-        for g, s in enumerate(group_searchers)
-        for e in s.play(params, task, jax.random.fold_in(key, g), seed=derive_seed(11, g), parallel=False)
-    ]
-    assert len(together) == 5
-    for a, b in zip(together, apart):
-        np.testing.assert_array_equal(a.labels, b.labels)
-        np.testing.assert_allclose(a.pi, b.pi)
-
-
-def test_groups_share_one_compiled_search_and_play_as_if_each_had_its_own():
+def test_groups_in_threads_share_one_compiled_search_and_play_as_each_would_alone():
+    """play_groups runs lockstep groups concurrently (XLA and numba without the GIL) through one shared
+    compiled search; the episodes must depend on neither: each group's are those of a plain play, one
+    after another, with its own key and seed, through a program compiled apart. (The batch of the
+    `episodes` fixture: a worker that ran it reuses its program.)"""
     from rllock.search.mcts import CompiledSearch, Searcher
     from rllock.search.network import PolicyValueNet
 
-    task = make_task("box:4x4x2", 4)
+    assert group_sizes(5, 2) == [3, 2] and group_sizes(5, 9) == [1] * 5
+    task = make_task("box:4x4x2", 3)
     net = NetConfig(canvas=4, features=(4, 8))
-    shared = searchers(net, SMALL, ChunkStore, task, episodes=6, groups=2)
+    shared = searchers(net, SMALL, ChunkStore, task, episodes=12, groups=2)
+    assert [s.batch for s in shared] == [6, 6]
     assert shared[0].compiled is shared[1].compiled and shared[0].slot != shared[1].slot
     # Searchers made later in the process, for a task of the same shape, reuse the same program.
-    again = Searcher(PolicyValueNet(net), SMALL, ChunkStore, make_task("box:4x4x2", 4), 3)
+    again = Searcher(PolicyValueNet(net), SMALL, ChunkStore, make_task("box:4x4x2", 3), 6)
     assert again.compiled is shared[0].compiled and again.slot not in (shared[0].slot, shared[1].slot)
     assert searchers(net, SMALL, ChunkStore, task, 4, 1)[0].compiled is not shared[0].compiled  # batch 4
-    alone = [
-        Searcher(
-            PolicyValueNet(net),
-            SMALL,
-            ChunkStore,
-            task,
-            3,
-            CompiledSearch(PolicyValueNet(net), SMALL, ChunkStore, task, 3),
-        )
-        for _ in range(2)
+    apart = CompiledSearch(PolicyValueNet(net), SMALL, ChunkStore, task, 6)
+    alone = [Searcher(PolicyValueNet(net), SMALL, ChunkStore, task, 6, apart) for _ in range(2)]
+    assert apart is not shared[0].compiled
+    params = init_params(net, jax.random.PRNGKey(0))
+    key = jax.random.PRNGKey(4)
+    together = play_groups(shared, params, task, key, seed=11)  # both groups in threads, at once
+    one_by_one = [
+        e
+        for g, s in enumerate(alone)
+        for e in s.play(params, task, jax.random.fold_in(key, g), seed=derive_seed(11, g), parallel=False)
     ]
-    assert alone[0].compiled is not alone[1].compiled
-    params = init_params(net, jax.random.PRNGKey(1))
-    key = jax.random.PRNGKey(2)
-    together = play_groups(shared, params, task, key, seed=5)  # both groups in threads, at once
-    apart = play_groups(alone, params, task, key, seed=5)
-    assert len(together) == len(apart) == 6
-    for a, b in zip(together, apart):
+    assert len(together) == len(one_by_one) == 12
+    for a, b in zip(together, one_by_one):
         np.testing.assert_array_equal(a.labels, b.labels)
         np.testing.assert_array_equal(a.actions, b.actions)
         np.testing.assert_allclose(a.pi, b.pi)
