@@ -6,6 +6,7 @@ import threading
 import jax
 import numpy as np
 import pytest
+from helpers import TINY, untrained_episodes
 
 from rllock.config import TrainConfig
 from rllock.core.env import make_task
@@ -16,20 +17,19 @@ from rllock.learner.learner import Learner, LearnerConfig
 from rllock.learner.replay import ReplayBuffer
 from rllock.orchestration.recorder import validation_rank
 from rllock.search.inference import load_policy
-from rllock.search.mcts import ChunkStore, MCTSConfig, Searcher
-from rllock.search.network import NetConfig, PolicyValueNet
+from rllock.search.mcts import ChunkStore, MCTSConfig
+from rllock.search.network import NetConfig
 from rllock.search.workload import SingleTask
 
 NET = NetConfig(canvas=4, features=(4, 8))
 MCTS = MCTSConfig(simulations=8, max_considered=4, raw_samples=256, candidates=8)
+assert TINY.net.features == NET.features and TINY.mcts == MCTS  # the same programs as the Ray tests
 
 
 @pytest.fixture(scope="module")
 def task_and_episodes():
-    task = make_task("box:4x4x2", 4)
-    searcher = Searcher(PolicyValueNet(NET), MCTS, ChunkStore, task, batch=8)
-    learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(0))
-    return task, searcher.play(learner.params, task, jax.random.PRNGKey(2), seed=1)
+    # The Ray tests' task, network and learner (helpers.TINY): one compiled update step for all of them.
+    return untrained_episodes(ChunkStore, MCTS, batch=6, seed=3)
 
 
 def test_replay_buffer_is_a_bounded_ring(task_and_episodes):
@@ -53,15 +53,15 @@ def test_learners_of_one_network_and_learning_rate_share_one_compiled_step(task_
     task, eps = task_and_episodes
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
     buf.add_many(eps)
-    sample = buf.sample(8, seed=0)
-    config = LearnerConfig(learning_rate=2e-3, batch_size=8)
+    sample = buf.sample(16, seed=0)
+    config = TINY.learner
     first = Learner(SingleTask.of(task, 4), NET, config, jax.random.PRNGKey(0))
     first.update(sample)
     compiled = update_step._cache_size()
     second = Learner(SingleTask.of(task, 4), NET, config, jax.random.PRNGKey(1))
     second.update(sample)
     assert second.optimizer is first.optimizer and update_step._cache_size() == compiled
-    Learner(SingleTask.of(task, 4), NET, LearnerConfig(learning_rate=1e-3), jax.random.PRNGKey(0)).update(
+    Learner(SingleTask.of(task, 4), NET, LearnerConfig(learning_rate=2e-3), jax.random.PRNGKey(0)).update(
         sample
     )
     assert update_step._cache_size() == compiled + 1  # another learning rate: another step
@@ -89,7 +89,7 @@ def test_learner_fits_a_fixed_batch(task_and_episodes):
 
 
 def _save(tmp_path, task, learner):
-    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
+    config = TrainConfig(shape="box:4x4x2", pieces=3, net=NET, mcts=MCTS)
     mngr = orbax_io.manager(tmp_path / "run" / "best", keep=1)
     orbax_io.save(mngr, learner.step, learner.state(), ckpt.Metadata.of(config, task, learner.step).to_json())
     mngr.close()
@@ -98,13 +98,13 @@ def _save(tmp_path, task, learner):
 
 def test_checkpoint_round_trip_restores_params_and_task(tmp_path, task_and_episodes):
     task, eps = task_and_episodes
-    learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5))
+    learner = Learner(SingleTask.of(task, 4), NET, TINY.learner, jax.random.PRNGKey(5))
     buf = ReplayBuffer(1000, task.size, 8, task.piece_size)
     buf.add_many(eps)
     learner.update(buf.sample(16, seed=1))
     run = _save(tmp_path, task, learner)
     policy = load_policy(run)
-    assert policy.step == 1 and policy.task.pieces == 4 and policy.net == NET and policy.mcts == MCTS
+    assert policy.step == 1 and policy.task.pieces == 3 and policy.net == NET and policy.mcts == MCTS
     assert np.array_equal(policy.task.topology.grid, task.topology.grid)
     for a, b in zip(jax.tree_util.tree_leaves(policy.params), jax.tree_util.tree_leaves(learner.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -114,7 +114,7 @@ def test_saving_a_step_again_replaces_it_and_never_leaves_the_folder_without_it(
     """A periodic checkpoint while the learner waits (no new step) saves the same step again."""
     task, _ = task_and_episodes
     learner = Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5))
-    config = TrainConfig(shape="box:4x4x2", pieces=4, net=NET, mcts=MCTS)
+    config = TrainConfig(shape="box:4x4x2", pieces=3, net=NET, mcts=MCTS)
     folder = tmp_path / "run" / "checkpoints"
     mngr = orbax_io.manager(folder, keep=3)
     orbax_io.save(mngr, 0, learner.state(), ckpt.Metadata.of(config, task, 0).to_json())
@@ -156,8 +156,8 @@ def test_exchange_swaps_two_folders_with_or_without_renameat2(tmp_path, monkeypa
 def test_checkpoint_for_another_task_or_corrupted_is_an_error(tmp_path, task_and_episodes):
     task, _ = task_and_episodes
     run = _save(tmp_path, task, Learner(SingleTask.of(task, 4), NET, LearnerConfig(), jax.random.PRNGKey(5)))
-    other = make_task("box:4x4x2", 3)
-    with pytest.raises(RLLockError, match=r"another task: box:4x4x2 \(4x4x2\) K=4, .*; this task is .*K=3"):
+    other = make_task("box:4x4x2", 4)
+    with pytest.raises(RLLockError, match=r"another task: box:4x4x2 \(4x4x2\) K=3, .*; this task is .*K=4"):
         load_policy(run, other)
     step_dir = ckpt.find_step_dir(run)
     broken = tmp_path / "broken"
