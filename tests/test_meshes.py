@@ -369,7 +369,7 @@ def test_resolution_is_checked(tmp_path):
     trimesh.creation.box().export(tmp_path / "box.stl")
     with pytest.raises(RLLockError, match="at least 1"):
         load_shape(str(tmp_path / "box.stl"), resolution=0)
-    with pytest.raises(RLLockError, match="only to .stl and .obj"):
+    with pytest.raises(RLLockError, match=r"only to meshes \(STL, OBJ, PLY, OFF, GLB, GLTF, 3MF\)"):
         load_shape("cube3", resolution=4)
     with pytest.raises(RLLockError, match="no such file"):
         load_shape(str(tmp_path / "missing.stl"))

@@ -81,6 +81,13 @@ def test_shapes_preview_and_openapi(server):
     preview = r.json()
     assert r.ok and preview["name"] == "a box.stl" and preview["dimensions"] == [6, 4, 3]
     assert preview["N"] == 72 == len(preview["voxels"]) and preview["pieces"]["max"] == 72
+    # The other mesh formats upload as STL does (each format's reading: test_mesh_files.py).
+    import trimesh
+
+    for suffix in ("ply", "glb"):
+        data = trimesh.creation.box(extents=(3.0, 2.0, 1.5)).export(file_type=suffix)
+        r = server.post("/api/shape", data={"resolution": "6"}, files={"file": (f"box.{suffix}", data)})
+        assert r.ok and r.json()["dimensions"] == [6, 4, 3], r.text
     paths = server.get("/openapi.json").json()["paths"]
     for path in (
         "/api/jobs",

@@ -178,7 +178,7 @@ def _add_shapes(bench: argparse._SubParsersAction) -> None:
         default=None,
         help="comma-separated shape names (default: desia-bunny, desia-dog, mario, bunny, spider)",
     )
-    p.add_argument("--mesh", default=None, help="an .stl/.obj model to add, at each of --resolutions")
+    p.add_argument("--mesh", default=None, help="a mesh file (.stl, .obj, .ply, ...) at each --resolutions")
     p.add_argument("--resolutions", default="12,16,20", help="the mesh's resolutions")
     p.add_argument("--pieces", default=None, help="the K sweep (default 10,20,...,100; K > N skipped)")
     p.add_argument("--removal", choices=(*REMOVAL_MODES, "both"), default="straight")

@@ -62,13 +62,14 @@ def add_task_args(p: argparse.ArgumentParser) -> None:
         "--shape",
         required=True,
         help="cube4 (any cubeN), box:WxHxD, ring, stairs, tube, a shipped shape by name (bunny, mario, ...), "
-        "a .puz/.vol/.npy file, or an .stl/.obj mesh (holes capped, open surfaces filled, with a warning)",
+        "a .puz/.vol/.npy file, or a mesh: .stl, .obj, .ply, .off, .glb, .gltf or .3mf (holes capped, open "
+        "surfaces filled, with a warning)",
     )
     p.add_argument(
         "--resolution",
         type=int,
         default=None,
-        help="for .stl/.obj shapes: at most this many voxels along the longest side (default 8)",
+        help="for mesh shapes: at most this many voxels along the longest side (default 8)",
     )
     p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
     p.add_argument(

@@ -190,7 +190,7 @@ def _add_shapes(api: FastAPI, ingress: Ingress) -> None:
         resolution: str | None = Form(None),
         file: UploadFile | None = File(None),
     ) -> dict:
-        """A shape (a built-in name, or an uploaded .puz/.vol/.npy/.stl/.obj) before any search: its voxel
+        """A shape (a built-in name, or an uploaded .puz/.vol/.npy file or mesh) before any search: its voxel
         count N, dimensions, the K that make sense, and its voxels (x fastest, then y, then z)."""
         label, grid = await _grid(ingress.limits, shape, file, resolution)
         flat = np.flatnonzero(grid.transpose(2, 1, 0).ravel())  # x fastest

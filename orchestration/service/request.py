@@ -20,11 +20,11 @@ import numpy as np
 from rllock.config import ServeConfig
 from rllock.core.env import Task, make_task
 from rllock.core.reference_checkers import REMOVAL_MODES
-from rllock.core.shapes import VENDORED_SHAPES, builtin_shape
+from rllock.core.shapes import MESH_FORMATS, MESH_SUFFIXES, VENDORED_SHAPES, builtin_shape
 from rllock.errors import RLLockError
 
 METHODS = ("solve", "generate")
-UPLOAD_SUFFIXES = (".puz", ".vol", ".npy", ".stl", ".obj")
+UPLOAD_SUFFIXES = (".puz", ".vol", ".npy", *MESH_SUFFIXES)
 SHAPE_NAMES = ("cube4", "cube5", "cube6", "ring", "stairs", "tube", *VENDORED_SHAPES)
 """The built-in shapes the web page offers (any cubeN and box:WxHxD are accepted too)."""
 
@@ -79,7 +79,7 @@ def shape_grid(
     if upload is None:
         assert name is not None
         if resolution is not None:
-            raise RLLockError("a resolution applies only to uploaded .stl and .obj meshes")
+            raise RLLockError(f"a resolution applies only to uploaded meshes ({MESH_FORMATS})")
         grid = builtin_shape(name)
         if grid is None:
             raise RLLockError(

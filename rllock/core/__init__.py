@@ -1,7 +1,8 @@
 """The core layer: what an interlocking assembly is, with no learning and no files.
 
   shapes.py                 voxel shapes: built-in names, .puz/.vol/.npy files, meshes, bounds, fingerprints
-  meshes.py                 .stl/.obj models to voxel shapes (input)
+  mesh_files.py             triangles from mesh files: STL, OBJ, PLY (strips too), OFF, glTF/GLB, 3MF
+  meshes.py                 mesh models to voxel shapes (input)
   piece_meshes.py           pieces to watertight meshes (export)
   topology.py               a shape's neighbour and ray tables, and its symmetries
   reference_checkers.py     the three checks and the sampler written plainly, the verifier's ground truth

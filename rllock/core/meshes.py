@@ -1,5 +1,5 @@
-"""`.stl`/`.obj` models to voxel shapes: loading and cleaning a mesh, deciding its inside, voxelizing
-it (the other way, pieces to meshes for export, is `rllock.core.piece_meshes`).
+"""Mesh models to voxel shapes (reading their files is `rllock.core.mesh_files`): cleaning a mesh, deciding
+its inside, voxelizing it (the other way, pieces to meshes for export, is `rllock.core.piece_meshes`).
 
 A mesh is sampled on a grid whose longest side has `resolution` voxels, mesh axes kept, at
 SUBSAMPLES^3 evenly spread points per voxel (its centre among them), each layer of points tested against the
@@ -33,6 +33,7 @@ from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from rllock.core.mesh_files import read_triangles
 from rllock.core.winding import build_tree, winding_numbers
 from rllock.errors import RLLockError
 
@@ -47,19 +48,11 @@ log = logging.getLogger(__name__)
 def _load_mesh(path: Path) -> trimesh.Trimesh:
     """The mesh's triangles with vertices merged by position, its holes capped when they are simple loops
     (`_capped`); a mesh whose open edges are not is returned open, for the winding numbers to fill."""
-    if not path.is_file():
-        raise RLLockError(f"no such file: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    # trimesh's many loaders fail on malformed files with unrelated exception types.
-    except Exception as exc:
-        raise RLLockError(f"cannot read mesh {path}: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise RLLockError(f"{path} holds no triangle mesh")
+    vertices, faces = read_triangles(path)
     # Only the geometry: textured and smooth-shaded models repeat a vertex wherever its texture
     # coordinates or normal change, which leaves the surface open along every seam until the copies are
     # merged by position (a mesh without texture or normals merges them so on load).
-    mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
     extent = np.asarray(mesh.extents, dtype=float)
     if extent.min() <= 1e-9 * extent.max():
         raise RLLockError(f"mesh {path} is flat (no thickness along one axis): it has no inside to fill")
@@ -322,7 +315,7 @@ def largest_component(grid: np.ndarray) -> np.ndarray:
 
 
 def voxelize_mesh(path: str | Path, resolution: int | None = None) -> np.ndarray:
-    """A `.stl`/`.obj` mesh as a boolean grid [x, y, z] (mesh axes kept), at most `resolution` voxels
+    """A mesh file (`MESH_SUFFIXES`) as a boolean grid [x, y, z] (mesh axes kept), at most `resolution` voxels
     along its longest side, reduced to its largest 6-connected part with a warning; refused when that
     drops more than MAX_DROPPED of the voxels, or when the mesh has no inside. A mesh that is not closed
     is filled where its winding numbers are above 1/2 (`_inside`)."""

@@ -1,5 +1,5 @@
 """Voxel shapes: built-in names, the DESIA `.puz`, High-Level `.vol` and `.npy` file formats, and
-closed `.stl`/`.obj` meshes (voxelized by `rllock.core.meshes`).
+mesh files of the common formats (voxelized by `rllock.core.meshes`).
 
 Built-in names are generated shapes (`cubeN`, `box:WxHxD`, `ring`) and the published shapes vendored in
 `rllock/data/shapes/` (`sofa`, `desia-bunny`, ...; sources and licences in `rllock/data/README.md`), so a
@@ -38,6 +38,10 @@ VENDORED_SHAPES = {
 BUILTIN_HELP = "cubeN (e.g. cube4), box:WxHxD (e.g. box:4x3x2), ring, stairs, tube, " + ", ".join(
     VENDORED_SHAPES
 )
+
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf")
+"""The mesh files a shape may come from (`rllock.core.mesh_files` reads them)."""
+MESH_FORMATS = ", ".join(s.lstrip(".").upper() for s in MESH_SUFFIXES)
 
 _DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -222,16 +226,17 @@ def validate_shape(grid: np.ndarray, name: str) -> np.ndarray:
 
 
 def load_shape(spec: str, resolution: int | None = None) -> np.ndarray:
-    """The boolean grid `[x, y, z]` named by `spec`: a built-in name, a .puz/.vol/.npy file, or a closed
-    .stl/.obj mesh voxelized to at most `resolution` voxels along its longest side (see rllock.core.meshes).
+    """The boolean grid `[x, y, z]` named by `spec`: a built-in name, a .puz/.vol/.npy file, or a mesh
+    file (MESH_SUFFIXES) voxelized to at most `resolution` voxels along its longest side (see
+    rllock.core.meshes).
 
     The result is cropped to its bounding box, non-empty and 6-connected.
     """
     path = Path(spec)
     suffix = path.suffix.lower()
-    is_mesh = suffix in (".stl", ".obj")
+    is_mesh = suffix in MESH_SUFFIXES
     if resolution is not None and not is_mesh:
-        raise RLLockError(f"a resolution applies only to .stl and .obj meshes, not to {spec!r}")
+        raise RLLockError(f"a resolution applies only to meshes ({MESH_FORMATS}), not to {spec!r}")
     grid = builtin_shape(spec)
     if grid is None:
         if is_mesh:
@@ -246,7 +251,9 @@ def load_shape(spec: str, resolution: int | None = None) -> np.ndarray:
         elif suffix == ".npy":
             grid = read_npy(path)
         elif path.exists():
-            raise RLLockError(f"unsupported shape file {spec!r}: use .puz, .vol, .npy, .stl or .obj")
+            raise RLLockError(
+                f"unsupported shape file {spec!r}: use .puz, .vol, .npy or a mesh ({MESH_FORMATS})"
+            )
         else:
             raise RLLockError(f"unknown shape {spec!r}: not a file, and not a built-in ({BUILTIN_HELP})")
     return validate_shape(grid, spec)
