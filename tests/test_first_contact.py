@@ -100,7 +100,7 @@ def test_a_failed_solve_says_what_it_reached_and_what_to_try(tmp_path):
     # stderr is a pipe, not a terminal: the search logs its progress every few seconds instead of a bar.
     lines = [line for line in stderr.splitlines() if "solve desia-bunny K=80: " in line]
     assert len(lines) >= 2 and all("nodes/s" in line and "restarts, best" in line for line in lines), stderr
-    first, best, tries = stdout.strip().splitlines()
+    first, best, thin, tries = stdout.strip().splitlines()
     assert first.startswith("solve: no valid assembly of desia-bunny K=80 within 12 s (")
     placed = int(best.split("best: ")[1].split(" of 79")[0])
     assert (
@@ -109,6 +109,8 @@ def test_a_failed_solve_says_what_it_reached_and_what_to_try(tmp_path):
     # N = 966: K = 79 keeps pieces of 12 (the last 966 - 78 * 12), K = 81 makes them 11 (966 - 80 * 11).
     assert "K=79 (pieces of 12, the last 30) or K=81 (pieces of 11, the last 86)" in tries, tries
     assert "more time (--time-limit 24)" in tries and "--removal path" in tries
+    # The bunny's ears and feet: a tenth of it where no 3^3 block fits (tests/test_thickness.py).
+    assert thin.startswith("  thin parts: 103 of the 966 voxels") and "--thicken 3" in thin, thin
 
 
 def test_a_bad_out_fails_before_any_work(tmp_path):

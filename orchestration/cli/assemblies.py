@@ -40,6 +40,9 @@ from rllock.orchestration.cli.longwork import (
 )
 
 log = logging.getLogger(__name__)
+THIN_SHARE = 0.05
+"""A search that ends short names the shape's thin parts when they hold at least this share of its voxels
+(or a piece's worth)."""
 PROGRESS_LOG_EVERY = 5.0  # seconds between progress lines in a log (stderr not a terminal)
 
 
@@ -98,7 +101,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         raise RLLockError(
             "--threads is for one search; --workers N shares its N cores between seeds and threads"
         )
-    task = make_task(args.shape, args.pieces, args.removal, resolution=args.resolution)
+    task = make_task(_shape(args), args.pieces, args.removal, name=args.shape)
     check_feasible(task)
     if not tight(task.size, task.pieces):
         n = task.piece_size
@@ -215,7 +218,8 @@ def _solve_into(task, args: argparse.Namespace, out: Path, written: list[Path], 
                 folder,
                 f.labels,
                 removal=task.removal,
-                shape=task.shape_name,
+                # The voxels are the grown shape's: the name says so.
+                shape=task.shape_name + ("" if args.thicken is None else f" (--thicken {args.thicken})"),
                 method={
                     "name": "search",
                     **asdict(config),
@@ -241,6 +245,45 @@ def progress(stats, pieces: int) -> str:
     )
 
 
+def _shape(args: argparse.Namespace) -> np.ndarray:
+    """The shape `solve` searches: --shape at --resolution, its thin parts grown when --thicken says so."""
+    from rllock.core.shapes import load_shape, validate_shape
+    from rllock.core.thickness import thicken
+
+    grid = load_shape(args.shape, args.resolution)
+    if args.thicken is None:
+        return grid
+    if args.thicken < 2:
+        raise RLLockError(f"--thicken takes a width of at least 2 voxels, got {args.thicken}")
+    grown = validate_shape(thicken(grid, args.thicken), args.shape)
+    log.info(
+        "--thicken %d: %s has %d voxels, %d of them added to its thin parts",
+        args.thicken,
+        args.shape,
+        int(grown.sum()),
+        int(grown.sum() - grid.sum()),
+    )
+    return grown
+
+
+def _thin_parts(task, args: argparse.Namespace) -> str | None:
+    """Why a figure's search may end short: how much of the shape is thin, and how to grow it (None when
+    little of it is, or when --thicken already grew it)."""
+    from rllock.core.thickness import THIN_WIDTH, thicken, thin_voxels
+
+    grid = task.topology.grid
+    thin = int(thin_voxels(grid).sum())
+    if args.thicken is not None or thin < max(task.piece_size, THIN_SHARE * task.size):
+        return None
+    grown = int(thicken(grid, THIN_WIDTH).sum())
+    return (
+        f"  thin parts: {thin:,} of the {task.size:,} voxels lie where the shape is at most "
+        f"{THIN_WIDTH - 1} voxels thick (arms, legs, ears, tails), where a piece of {task.piece_size} has "
+        f"little room to hold or be held; --thicken {THIN_WIDTH} grows them ({grown:,} voxels then), "
+        "a higher --resolution makes them thicker in voxels"
+    )
+
+
 def _nothing_found(task, args: argparse.Namespace, stats) -> str:
     """What a search that found nothing reached, why its deepest state's next piece failed, what to try."""
     from rllock.core.env import rejections
@@ -260,6 +303,9 @@ def _nothing_found(task, args: argparse.Namespace, stats) -> str:
             lines[-1] += f"; of {raw} chunks sampled for piece {piece}, " + ", ".join(
                 f"{failed[name]} fail {name}" for name in order
             )
+    thin = _thin_parts(task, args)
+    if thin is not None:
+        lines.append(thin)
     more = f"more time (--time-limit {2 * args.time_limit:g})"
     lines.append("  " + advice(task, fits_general=general_serves(task), more=more))
     return "\n".join(lines) + "\n"
@@ -377,6 +423,14 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="run the --workers searches as Ray actors (one CPU each) on the Ray cluster at this address "
         "(host:port of its head, or auto) instead of on this machine",
+    )
+    p.add_argument(
+        "--thicken",
+        type=int,
+        default=None,
+        metavar="W",
+        help="grow the shape's thin parts (arms, legs, ears: where no W^3 block fits) by a voxel all "
+        "round until one does; the rest of the shape is kept (try 3 when a figure's limbs stop the search)",
     )
     p.set_defaults(func=cmd_solve)
 
