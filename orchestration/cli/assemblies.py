@@ -278,9 +278,10 @@ def _thin_parts(task, args: argparse.Namespace) -> str | None:
     grown = int(thicken(grid, THIN_WIDTH).sum())
     return (
         f"  thin parts: {thin:,} of the {task.size:,} voxels lie where the shape is at most "
-        f"{THIN_WIDTH - 1} voxels thick (arms, legs, ears, tails), where a piece of {task.piece_size} has "
-        f"little room to hold or be held; --thicken {THIN_WIDTH} grows them ({grown:,} voxels then), "
-        "a higher --resolution makes them thicker in voxels"
+        f"{THIN_WIDTH - 1} voxels thick (arms, legs, ears, tails), where pieces have little room to hold "
+        f"or be held: larger pieces help (a smaller K, or --thicken {THIN_WIDTH}, which grows the thin "
+        f"parts to {grown:,} voxels in all, pieces of {grown // task.pieces} at this K), and so does a "
+        "higher --resolution"
     )
 
 
