@@ -126,13 +126,21 @@ def test_worker_0_keeps_the_cores_while_its_threads_are_busy():
     assert not shares_cores(idle, judge) and not shares_cores(idle, 10 * judge)
 
 
-def _process_state(pid: int) -> str:
-    """R running, S sleeping, T stopped ... (proc(5)); "gone" once it has ended."""
+def _process_state(pid: int, started: int | None = None) -> str:
+    """R running, S sleeping, T stopped ... (proc(5)); "gone" once it has ended, or when the process
+    with that id now started at another time than `started` (its start time in clock ticks since boot):
+    ids are reused, within a minute on a machine with few of them (pid_max 32768) and many threads."""
     try:
         with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0]
+            fields = f.read().rsplit(")", 1)[1].split()
     except FileNotFoundError:
         return "gone"
+    return "gone" if started is not None and int(fields[19]) != started else fields[0]
+
+
+def _start_time(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[19])
 
 
 def _cpu_ticks(pid: int) -> int:
@@ -268,15 +276,16 @@ def test_a_worker_does_not_outlive_its_parent_killed_outright(tmp_path):
     try:
         assert parent.stdout is not None
         worker = int(parent.stdout.readline())
+        started = _start_time(worker)
     finally:
         os.kill(parent.pid, signal.SIGKILL)
         parent.wait(timeout=10)
     # A worker still importing when its parent died exits once it asks for the signal (`_die_with_parent`),
     # which a loaded machine may reach seconds later.
     deadline = time.monotonic() + 60
-    while _process_state(worker) not in ("gone", "Z") and time.monotonic() < deadline:
+    while _process_state(worker, started) not in ("gone", "Z") and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert _process_state(worker) in ("gone", "Z")  # killed (a zombie until something reaps it)
+    assert _process_state(worker, started) in ("gone", "Z")  # killed (a zombie until something reaps it)
 
 
 def test_worker_0_judges_its_threads_from_the_end_of_their_first_sample(monkeypatch):
