@@ -288,6 +288,22 @@ def test_a_worker_does_not_outlive_its_parent_killed_outright(tmp_path):
     assert _process_state(worker, started) in ("gone", "Z")  # killed (a zombie until something reaps it)
 
 
+def test_a_worker_whose_parent_is_gone_stops_without_asking_the_event():
+    """A parent killed outright may die holding the stop event's lock: an orphaned worker stops on its
+    own, and asks the event only while its parent is the one it started with."""
+
+    class Held:
+        def is_set(self) -> bool:
+            raise AssertionError("asked an event whose lock a dead parent may hold")
+
+    assert portfolio.Orphaned(Held(), parent=-1).is_set()  # not our parent: gone
+    event = mp.get_context("spawn").Event()
+    watched = portfolio.Orphaned(event, parent=os.getppid())
+    assert not watched.gone() and not watched.is_set()
+    event.set()
+    assert watched.is_set()
+
+
 def test_worker_0_judges_its_threads_from_the_end_of_their_first_sample(monkeypatch):
     """The first sample loads the compiled sampler: the time before its end does not count. The lent
     worker starts only when the cores go apart."""

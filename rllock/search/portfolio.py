@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue as queues
 import signal
 import sys
@@ -98,10 +99,33 @@ def _work(
 
 
 def _work_locally(out: Any, halt: Any, *job: Any) -> None:
-    """`_work` in a spawned process."""
+    """`_work` in a spawned process, which also stops once its parent is gone: a parent killed outright
+    can die holding the locks of the stop event and the queue, and a worker that asked them would wait
+    for ever (one was found asleep, its parent init, minutes after the kill)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if _die_with_parent():
-        _work(out, halt, *job)
+    if not _die_with_parent():
+        return
+    parent = mp.parent_process()
+    watched = Orphaned(halt, parent.pid if parent is not None and parent.pid else os.getppid())
+    try:
+        _work(out, watched, *job)
+    finally:
+        if watched.gone():
+            out.cancel_join_thread()  # nobody reads what is left: exit without waiting to send it
+
+
+class Orphaned:
+    """A stop event that also counts as set once this process's parent is no longer `parent`, asked
+    before the event itself (whose lock a parent killed outright may still hold)."""
+
+    def __init__(self, event: Any, parent: int):
+        self.event, self.parent = event, parent
+
+    def gone(self) -> bool:
+        return os.getppid() != self.parent
+
+    def is_set(self) -> bool:
+        return self.gone() or self.event.is_set()
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
