@@ -250,11 +250,11 @@ def _shape(args: argparse.Namespace) -> np.ndarray:
     from rllock.core.shapes import load_shape, validate_shape
     from rllock.core.thickness import thicken
 
+    if args.thicken is not None and args.thicken < 2:  # before the shape is read: a mesh takes seconds
+        raise RLLockError(f"--thicken takes a width of at least 2 voxels, got {args.thicken}")
     grid = load_shape(args.shape, args.resolution)
     if args.thicken is None:
         return grid
-    if args.thicken < 2:
-        raise RLLockError(f"--thicken takes a width of at least 2 voxels, got {args.thicken}")
     grown = validate_shape(thicken(grid, args.thicken), args.shape)
     log.info(
         "--thicken %d: %s has %d voxels, %d of them added to its thin parts",

@@ -103,10 +103,9 @@ def _work_locally(out: Any, halt: Any, *job: Any) -> None:
     can die holding the locks of the stop event and the queue, and a worker that asked them would wait
     for ever (one was found asleep, its parent init, minutes after the kill)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if not _die_with_parent():
+    watched = Orphaned(halt, _die_with_parent())
+    if watched.gone():  # the parent died before the signal was asked for
         return
-    parent = mp.parent_process()
-    watched = Orphaned(halt, parent.pid if parent is not None and parent.pid else os.getppid())
     try:
         _work(out, watched, *job)
     finally:
@@ -131,16 +130,16 @@ class Orphaned:
 PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
-def _die_with_parent() -> bool:
-    """Whether to go on: on Linux the kernel is asked to SIGKILL this worker when the thread that started
-    it ends, so a worker does not search on, alone, until its time limit when its parent is killed
-    outright. False if the parent is already gone."""
+def _die_with_parent() -> int:
+    """The process id of the parent that started this worker. On Linux the kernel is first asked to
+    SIGKILL this worker when the thread that started it ends, so a worker does not search on, alone,
+    until its time limit when its parent is killed outright (a parent already gone then: `Orphaned`)."""
     if sys.platform.startswith("linux"):
         import ctypes
 
         ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     parent = mp.parent_process()
-    return parent is None or parent.is_alive()
+    return parent.pid if parent is not None and parent.pid else os.getppid()
 
 
 def shares_cores(busy: float, seconds: float) -> bool:
