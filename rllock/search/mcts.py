@@ -154,10 +154,6 @@ class CompiledSearch:
         self._shapes = _expansion_shapes(
             batch, space.action_shape(task, config), self.canvas, planes_of(net.config)
         )
-        # The network at the root is a program of its own: without the host callback, JAX's disk cache
-        # keeps it (one for every task of this canvas and batch), and the search, which no cache can
-        # keep, holds one copy of the network, not two.
-        self._root = jax.jit(self._network)
         self._jitted = jax.jit(self._tree_search)
         self._compiled: Any = None
         self._lock = threading.Lock()
@@ -172,19 +168,14 @@ class CompiledSearch:
     def run(self, slot: int, params, key, roots, planes, chunks, valid):
         """The search for the searcher in `slot`; compiled ahead of time on the first call, under a lock,
         so that groups starting together do not compile it each."""
-        voxel_logits, value = self._root(params, planes)
-        args = ((params, jnp.int32(slot)), key, roots, voxel_logits, value, chunks, valid)
+        args = ((params, jnp.int32(slot)), key, roots, planes, chunks, valid)
         with self._lock:
             if self._compiled is None:
                 self._compiled = self._jitted.lower(*args).compile()
         return self._compiled(*args)
 
-    def _network(self, params, planes):
-        """planes [B, C, C, C, P] -> (voxel logits [B, C^3], value [B])."""
-        return self.net.apply({"params": params}, planes)
-
     def _evaluate(self, params, planes, chunks, valid):
-        voxel_logits, value = self._network(params, planes)
+        voxel_logits, value = self.net.apply({"params": params}, planes)
         return chunk_logits(voxel_logits, chunks, valid), value
 
     def _host_expand(self, slot, nodes, actions):
@@ -206,8 +197,8 @@ class CompiledSearch:
         )
         return out, kids
 
-    def _tree_search(self, params_slot, key, roots, voxel_logits, value, chunks, valid):
-        logits = chunk_logits(voxel_logits, chunks, valid)
+    def _tree_search(self, params_slot, key, roots, planes, chunks, valid):
+        logits, value = self._evaluate(params_slot[0], planes, chunks, valid)
         root = mctx.RootFnOutput(prior_logits=logits, value=value, embedding=roots)
         out = mctx.gumbel_muzero_policy(
             params_slot,

@@ -20,7 +20,7 @@ from rllock.core.env import Task
 from rllock.errors import RLLockError
 from rllock.search.mcts import CompiledSearch, Searcher
 from rllock.search.methods import space
-from rllock.search.network import PolicyValueNet
+from rllock.search.network import PolicyValueNet, chunk_logits
 
 Evaluate = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """planes [B, C, C, C, P] (float32) -> (voxel logits [B, C^3], value [B]), both float32."""
@@ -41,14 +41,15 @@ class RemoteSearch(CompiledSearch):
         logits, value = self.evaluate(np.asarray(planes, np.float32))
         return np.asarray(logits, np.float32), np.asarray(value, np.float32)
 
-    def _network(self, params, planes):
+    def _evaluate(self, params, planes, chunks, valid):
         del params
         rows = planes.shape[0]
         shapes = (
             jax.ShapeDtypeStruct((rows, self.canvas**3), jnp.float32),
             jax.ShapeDtypeStruct((rows,), jnp.float32),
         )
-        return io_callback(self._host_evaluate, shapes, planes)
+        voxel_logits, value = io_callback(self._host_evaluate, shapes, planes)
+        return chunk_logits(voxel_logits, chunks, valid), value
 
 
 def remote_searcher(compiled: RemoteSearch, task: Task) -> Searcher:
