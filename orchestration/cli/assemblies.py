@@ -30,19 +30,15 @@ from rllock.orchestration.cli.common import (
     fresh_out,
     picture_writer,
 )
+from rllock.orchestration.cli.failure import nothing_found, offer
 from rllock.orchestration.cli.longwork import (
     INTERRUPTED,
-    advice,
-    general_serves,
     graceful_stop,
     is_interrupt,
     kept,
 )
 
 log = logging.getLogger(__name__)
-THIN_SHARE = 0.05
-"""A search that ends short names the shape's thin parts when they hold at least this share of its voxels
-(or a piece's worth)."""
 PROGRESS_LOG_EVERY = 5.0  # seconds between progress lines in a log (stderr not a terminal)
 
 
@@ -152,7 +148,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
         sys.stdout.write(kept("solve", len(written), out))
         return INTERRUPTED
     if not written:
-        sys.stdout.write(_nothing_found(task, args, stats))
+        sys.stdout.write(nothing_found(task, args, stats))
+        sys.stdout.flush()
+        sys.stdout.write(offer(task, args))
         return 1
     elapsed = time.perf_counter() - start
     sys.stdout.write(
@@ -264,52 +262,6 @@ def _shape(args: argparse.Namespace) -> np.ndarray:
         int(grown.sum() - grid.sum()),
     )
     return grown
-
-
-def _thin_parts(task, args: argparse.Namespace) -> str | None:
-    """Why a figure's search may end short: how much of the shape is thin, and how to grow it (None when
-    little of it is, or when --thicken already grew it)."""
-    from rllock.core.thickness import THIN_WIDTH, thicken, thin_voxels
-
-    grid = task.topology.grid
-    thin = int(thin_voxels(grid).sum())
-    if args.thicken is not None or thin < max(task.piece_size, THIN_SHARE * task.size):
-        return None
-    grown = int(thicken(grid, THIN_WIDTH).sum())
-    return (
-        f"  thin parts: {thin:,} of the {task.size:,} voxels lie where the shape is at most "
-        f"{THIN_WIDTH - 1} voxels thick (arms, legs, ears, tails), where pieces have little room to hold "
-        f"or be held: larger pieces help (a smaller K, or --thicken {THIN_WIDTH}, which grows the thin "
-        f"parts to {grown:,} voxels in all, pieces of {grown // task.pieces} at this K), and so does a "
-        "higher --resolution"
-    )
-
-
-def _nothing_found(task, args: argparse.Namespace, stats) -> str:
-    """What a search that found nothing reached, why its deepest state's next piece failed, what to try."""
-    from rllock.core.env import rejections
-
-    lines = [
-        f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s "
-        f"({stats.expansions:,} node expansions, {stats.restarts} restarts)",
-        f"  best: {stats.placed} of {task.pieces - 1} pieces placed",
-    ]
-    if stats.deepest is not None:
-        raw, failed = rejections(task, stats.deepest, seed=args.seed, num_samples=512)
-        piece = stats.placed + 1
-        if raw == 0:
-            lines[-1] += f"; piece {piece} cannot grow to n = {task.piece_size} voxels there"
-        else:
-            order = sorted(failed, key=lambda name: -failed[name])
-            lines[-1] += f"; of {raw} chunks sampled for piece {piece}, " + ", ".join(
-                f"{failed[name]} fail {name}" for name in order
-            )
-    thin = _thin_parts(task, args)
-    if thin is not None:
-        lines.append(thin)
-    more = f"more time (--time-limit {2 * args.time_limit:g})"
-    lines.append("  " + advice(task, fits_general=general_serves(task), more=more))
-    return "\n".join(lines) + "\n"
 
 
 def _name(source: str) -> str:
@@ -432,6 +384,15 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         metavar="W",
         help="grow the shape's thin parts (arms, legs, ears: where no W^3 block fits) by a voxel all "
         "round until one does; the rest of the shape is kept (try 3 when a figure's limbs stop the search)",
+    )
+    p.add_argument(
+        "--probe",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="when the search finds nothing: search tasks near it (another K, thin parts grown) on the "
+        "free cores for at most this long and offer the nearest that works (default: half of "
+        "--time-limit, at most 30; 0: offer none)",
     )
     p.set_defaults(func=cmd_solve)
 

@@ -1,0 +1,118 @@
+"""What `solve` says when its search found nothing: how far it got and why its next piece failed, the
+shape's thin parts, and a task near it that works, found by a bounded probe (`rllock.search.probe`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+
+from rllock.core.env import Task, rejections
+from rllock.orchestration.cli.longwork import advice, general_serves
+from rllock.search.probe import Candidate, nearby, probe
+
+log = logging.getLogger(__name__)
+
+THIN_SHARE = 0.05
+"""A search that ends short names the shape's thin parts when they hold at least this share of its voxels
+(or a piece's worth)."""
+PROBE_CANDIDATE_SECONDS = 10.0
+"""The probe's time for one candidate task: the tasks it finds are those a minute's search finds
+quickly, and it offers the time it took."""
+
+
+def probe_budget(args: argparse.Namespace) -> float:
+    """--probe's seconds, by default half of --time-limit, at most 30 s."""
+    return min(30.0, args.time_limit / 2) if args.probe is None else max(args.probe, 0.0)
+
+
+def thin_parts(task: Task, args: argparse.Namespace) -> str | None:
+    """Why a figure's search may end short: how much of the shape is thin, and how to grow it (None when
+    little of it is, or when --thicken already grew it)."""
+    from rllock.core.thickness import THIN_WIDTH, thicken, thin_voxels
+
+    grid = task.topology.grid
+    thin = int(thin_voxels(grid).sum())
+    if args.thicken is not None or thin < max(task.piece_size, THIN_SHARE * task.size):
+        return None
+    grown = int(thicken(grid, THIN_WIDTH).sum())
+    return (
+        f"  thin parts: {thin:,} of the {task.size:,} voxels lie where the shape is at most "
+        f"{THIN_WIDTH - 1} voxels thick (arms, legs, ears, tails), where pieces have little room to hold "
+        f"or be held: larger pieces help (a smaller K, or --thicken {THIN_WIDTH}, which grows the thin "
+        f"parts to {grown:,} voxels in all, pieces of {grown // task.pieces} at this K), and so does a "
+        "higher --resolution"
+    )
+
+
+def nothing_found(task: Task, args: argparse.Namespace, stats) -> str:
+    """What a search that found nothing reached and why its deepest state's next piece failed."""
+    lines = [
+        f"solve: no valid assembly of {task.shape_name} K={task.pieces} within {args.time_limit:g} s "
+        f"({stats.expansions:,} node expansions, {stats.restarts} restarts)",
+        f"  best: {stats.placed} of {task.pieces - 1} pieces placed",
+    ]
+    if stats.deepest is not None:
+        raw, failed = rejections(task, stats.deepest, seed=args.seed, num_samples=512)
+        piece = stats.placed + 1
+        if raw == 0:
+            lines[-1] += f"; piece {piece} cannot grow to n = {task.piece_size} voxels there"
+        else:
+            order = sorted(failed, key=lambda name: -failed[name])
+            lines[-1] += f"; of {raw} chunks sampled for piece {piece}, " + ", ".join(
+                f"{failed[name]} fail {name}" for name in order
+            )
+    thin = thin_parts(task, args)
+    if thin is not None:
+        lines.append(thin)
+    return "\n".join(lines) + "\n"
+
+
+def offer(task: Task, args: argparse.Namespace) -> str:
+    """The nearest task that works, found by a probe of --probe seconds with the same seed, as a command
+    to run; else what to try."""
+    from rllock.core.thickness import THIN_WIDTH
+
+    budget = probe_budget(args)
+    more = f"more time (--time-limit {2 * args.time_limit:g})"
+    fallback = "  " + advice(task, fits_general=general_serves(task), more=more) + "\n"
+    if budget <= 0:
+        return fallback
+    thicken = THIN_WIDTH if thin_parts(task, args) is not None else None
+    seconds = min(PROBE_CANDIDATE_SECONDS, budget)
+    log.info("looking for a task near it that works, for up to %.0f s (--probe 0 skips this)", budget)
+    try:
+        found = probe(
+            task.topology.grid,
+            task.removal,
+            nearby(task.pieces, task.size, thicken),
+            seed=args.seed,
+            seconds=seconds,
+            budget=budget,
+        )
+    except KeyboardInterrupt:
+        return fallback
+    if found is None:
+        return f"  no task near it found an assembly within {seconds:g} s either;\n" + fallback
+    c = found.candidate
+    grown = "" if c.thicken is None else f" on the shape with its thin parts grown (--thicken {c.thicken})"
+    return (
+        f"  a task that works: K={c.pieces}{grown}, pieces of {found.piece_size} and the last "
+        f"{found.last_size}; this search (seed {args.seed}) found one in {found.seconds:.1f} s:\n"
+        f"    {retry_command(args, c)}\n"
+    )
+
+
+def retry_command(args: argparse.Namespace, candidate: Candidate) -> str:
+    """The `rllock solve` command of `args` with the candidate's K and thickening."""
+    words = ["rllock", "solve", "--shape", args.shape]
+    if args.resolution is not None:
+        words += ["--resolution", str(args.resolution)]
+    words += ["--pieces", str(candidate.pieces)]
+    if args.removal != "straight":
+        words += ["--removal", args.removal]
+    thicken = candidate.thicken if candidate.thicken is not None else args.thicken
+    if thicken is not None:
+        words += ["--thicken", str(thicken)]
+    words += ["--seed", str(args.seed), "--out", str(args.out)]
+    return shlex.join(words)

@@ -1,0 +1,100 @@
+"""A bounded probe: tasks near one whose search failed (another K, the thin parts grown), each searched by
+the solver for a few seconds on the free cores, so that a failure can offer a task that works.
+
+The offer holds by construction: the solver is the same search with the same seed, which finds the same
+assembly again in about the same time. Candidates are tried nearest first, as many at once as there are
+workers; the probe stops after the first round that finds one, and offers the nearest that did."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from rllock.errors import RLLockError
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A task near the failed one: another K, and or the shape's thin parts grown to `thicken`."""
+
+    pieces: int
+    thicken: int | None = None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    candidate: Candidate
+    seconds: float | None  # to the first assembly; None: none within the probe's time, or no assembly
+    piece_size: int  # n of the task tried (the shape it was tried on, grown or not)
+    last_size: int
+
+
+def nearby(pieces: int, size: int, thicken: int | None = None) -> list[Candidate]:
+    """Tasks near K = `pieces` on `size` voxels, nearest first: one or two pieces more or fewer (one more
+    often leaves a last piece well over the others, which is easier), then larger pieces (a tenth, a
+    fifth, a third and half fewer pieces), and with `thicken`, the same K on the shape with its thin
+    parts grown."""
+    ks = [pieces + 1, pieces - 1, pieces + 2, pieces - 2]
+    ks += [round(pieces * f) for f in (0.9, 0.8, 2 / 3, 0.5)]
+    found = [Candidate(k) for k in dict.fromkeys(ks) if 2 <= k <= size and k != pieces]
+    if thicken is not None:  # it changes the shape, not the count: after the K one off
+        found.insert(min(2, len(found)), Candidate(pieces, thicken))
+    return found
+
+
+def probe(
+    grid: np.ndarray,
+    removal: str,
+    candidates: list[Candidate],
+    *,
+    seed: int,
+    seconds: float,
+    budget: float,
+    workers: int | None = None,
+) -> Outcome | None:
+    """The nearest of `candidates` (in their order) that the solver with `seed` finds an assembly for
+    within `seconds`, trying `workers` at once (default: the cores this process may use) for at most
+    `budget` seconds in all; None when none of those tried did."""
+    workers = workers or len(os.sched_getaffinity(0))
+    rounds = max(1, int(budget // max(seconds, 1e-3)))
+    todo = candidates[: rounds * workers]
+    if not todo:
+        return None
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(min(workers, len(todo)), mp_context=context) as pool:
+        try:
+            for start in range(0, len(todo), workers):
+                batch = todo[start : start + workers]
+                outcomes = list(pool.map(_try, [(grid, removal, c, seed, seconds) for c in batch]))
+                found = [o for o in outcomes if o.seconds is not None]
+                if found:
+                    return found[0]
+        finally:
+            pool.shutdown(cancel_futures=True)
+    return None
+
+
+def _try(args: tuple[np.ndarray, str, Candidate, int, float]) -> Outcome:
+    """One candidate searched for `seconds` (in a worker process)."""
+    from rllock.core.env import make_task
+    from rllock.core.feasibility import impossibility
+    from rllock.core.thickness import thicken
+    from rllock.search.solver import search
+
+    grid, removal, candidate, seed, seconds = args
+    shape = grid if candidate.thicken is None else thicken(grid, candidate.thicken)
+    try:
+        task = make_task(shape, candidate.pieces, removal)
+    except RLLockError:
+        return Outcome(candidate, None, 0, 0)
+    if impossibility(task) is not None:
+        return Outcome(candidate, None, task.piece_size, task.last_size)
+    start = time.monotonic()
+    found = next(search(task, seed=seed, time_limit=seconds), None)
+    elapsed = None if found is None else time.monotonic() - start
+    return Outcome(candidate, elapsed, task.piece_size, task.last_size)
