@@ -4,6 +4,7 @@ any work."""
 
 from __future__ import annotations
 
+import shlex
 import signal
 import subprocess
 import sys
@@ -84,33 +85,43 @@ def test_ctrl_c_in_generate_keeps_complete_folders_and_says_so(tmp_path):
     assert kept >= 1 and f"generate: interrupted; kept {kept} valid {word} in {out}" in stdout
 
 
-def test_a_failed_solve_says_what_it_reached_and_what_to_try(tmp_path):
+def test_a_failed_solve_says_what_it_reached_and_offers_a_task_that_works(tmp_path):
+    out = tmp_path / "o"
     code, stdout, stderr = run_cli(
-        "solve",
-        "--shape",
-        "desia-bunny",
-        "--pieces",
-        "80",
-        "--time-limit",
-        "12",
-        "--out",
-        str(tmp_path / "o"),
-    )
+        "solve", "--shape", "desia-bunny", "--pieces", "80", "--time-limit", "12", "--out", str(out)
+    )  # fmt: skip
     assert code == 1
     # stderr is a pipe, not a terminal: the search logs its progress every few seconds instead of a bar.
     lines = [line for line in stderr.splitlines() if "solve desia-bunny K=80: " in line]
     assert len(lines) >= 2 and all("nodes/s" in line and "restarts, best" in line for line in lines), stderr
-    first, best, thin, tries = stdout.strip().splitlines()
+    first, best, thin, works, command = stdout.strip().splitlines()
     assert first.startswith("solve: no valid assembly of desia-bunny K=80 within 12 s (")
     placed = int(best.split("best: ")[1].split(" of 79")[0])
     assert (
         0 < placed < 79 and f"chunks sampled for piece {placed + 1}" in best and "fail connectivity" in best
     )
-    # N = 966: K = 79 keeps pieces of 12 (the last 966 - 78 * 12), K = 81 makes them 11 (966 - 80 * 11).
-    assert "K=79 (pieces of 12, the last 30) or K=81 (pieces of 11, the last 86)" in tries, tries
-    assert "more time (--time-limit 24)" in tries and "--removal path" in tries
     # The bunny's ears and feet: a tenth of it where no 3^3 block fits (tests/test_thickness.py).
     assert thin.startswith("  thin parts: 103 of the 966 voxels") and "--thicken 3" in thin, thin
+    # The probe (half the time limit): N = 966, K = 81 makes pieces of 11 and the last 966 - 80 * 11.
+    assert "looking for a task near it that works, for up to 6 s" in stderr
+    assert works.startswith("  a task that works: K=81, pieces of 11 and the last 86; this search (seed 0)")
+    assert command.strip() == f"rllock solve --shape desia-bunny --pieces 81 --seed 0 --out {out}"
+    # The offer holds: the same search finds it again.
+    code, stdout, stderr = run_cli(*shlex.split(command)[1:])
+    assert code == 0 and "solve: 1 valid assembly of desia-bunny K=81" in stdout, stderr
+    assert verify_labels(read_assembly(out / "assembly_001")[0]).valid
+
+
+def test_without_a_probe_a_failed_solve_says_what_to_try(tmp_path):
+    code, stdout, _ = run_cli(
+        "solve", "--shape", "desia-bunny", "--pieces", "80", "--time-limit", "1", "--probe", "0",
+        "--out", str(tmp_path / "o"),
+    )  # fmt: skip
+    assert code == 1
+    tries = stdout.strip().splitlines()[-1]
+    # N = 966: K = 79 keeps pieces of 12 (the last 966 - 78 * 12), K = 81 makes them 11 (966 - 80 * 11).
+    assert "K=79 (pieces of 12, the last 30) or K=81 (pieces of 11, the last 86)" in tries, tries
+    assert "more time (--time-limit 2)" in tries and "--removal path" in tries
 
 
 def test_a_bad_out_fails_before_any_work(tmp_path):

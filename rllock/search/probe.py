@@ -10,7 +10,6 @@ from __future__ import annotations
 import multiprocessing
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,17 +64,29 @@ def probe(
     todo = candidates[: rounds * workers]
     if not todo:
         return None
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(min(workers, len(todo)), mp_context=context) as pool:
-        try:
-            for start in range(0, len(todo), workers):
-                batch = todo[start : start + workers]
-                outcomes = list(pool.map(_try, [(grid, removal, c, seed, seconds) for c in batch]))
-                found = [o for o in outcomes if o.seconds is not None]
-                if found:
-                    return found[0]
-        finally:
-            pool.shutdown(cancel_futures=True)
+    pool = multiprocessing.get_context("spawn").Pool(min(workers, len(todo)))
+    try:
+        for start in range(0, len(todo), workers):
+            pending = [
+                pool.apply_async(_try, ((grid, removal, c, seed, seconds),))
+                for c in todo[start : start + workers]
+            ]
+            found = _nearest_found(pending)
+            if found is not None:
+                return found
+    finally:
+        pool.terminate()  # the other candidates' searches, still running, are not needed
+        pool.join()
+    return None
+
+
+def _nearest_found(pending: list) -> Outcome | None:
+    """The first of `pending` (in order) that found an assembly, as soon as every one before it is known
+    to have found none; None when none did."""
+    for result in pending:
+        outcome = result.get()
+        if outcome.seconds is not None:
+            return outcome
     return None
 
 
