@@ -102,8 +102,9 @@ def test_a_failed_solve_says_what_it_reached_and_offers_a_task_that_works(tmp_pa
     )
     # The bunny's ears and feet: a tenth of it where no 3^3 block fits (tests/test_thickness.py).
     assert thin.startswith("  thin parts: 103 of the 966 voxels") and "--thicken 3" in thin, thin
-    # The probe (half the time limit): N = 966, K = 81 makes pieces of 11 and the last 966 - 80 * 11.
-    assert "looking for a task near it that works, for up to 6 s" in stderr
+    # The probe (half the time limit, at least 10 s): N = 966, K = 81 makes pieces of 11, the last
+    # 966 - 80 * 11.
+    assert "looking for a task near it that works, for up to 10 s" in stderr
     assert works.startswith("  a task that works: K=81, pieces of 11 and the last 86; this search (seed 0)")
     assert command.strip() == f"rllock solve --shape desia-bunny --pieces 81 --seed 0 --out {out}"
     # The offer holds: the same search finds it again.

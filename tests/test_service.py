@@ -88,6 +88,15 @@ def test_shapes_preview_and_openapi(server):
         data = trimesh.creation.box(extents=(3.0, 2.0, 1.5)).export(file_type=suffix)
         r = server.post("/api/shape", data={"resolution": "6"}, files={"file": (f"box.{suffix}", data)})
         assert r.ok and r.json()["dimensions"] == [6, 4, 3], r.text
+    # Thin parts: counted for every shape, grown when asked (the same growth as solve --thicken).
+    from rllock.core.shapes import load_shape
+    from rllock.core.thickness import thicken
+
+    assert shapes["desia-bunny"]["thin"] == 103 and shapes["cube4"]["thin"] == 0
+    grown = server.post("/api/shape", data={"shape": "desia-bunny", "thicken": "3"}).json()
+    assert grown["N"] == int(thicken(load_shape("desia-bunny"), 3).sum()) > 966 and grown["thin"] == 0
+    r = server.post("/api/shape", data={"shape": "desia-bunny", "thicken": "1"})
+    assert r.status_code == 400 and r.json() == {"error": "thicken takes a width of at least 2 voxels, got 1"}
     paths = server.get("/openapi.json").json()["paths"]
     for path in (
         "/api/jobs",
@@ -249,7 +258,7 @@ def test_the_web_page_in_headless_chromium(server, tmp_path):
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import WebDriverWait
+    from selenium.webdriver.support.ui import Select, WebDriverWait
 
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
@@ -310,6 +319,28 @@ def test_the_web_page_in_headless_chromium(server, tmp_path):
             time.sleep(0.3)
         archive = zipfile.ZipFile(next(downloads.glob("*.zip")))
         assert len([n for n in archive.namelist() if n.endswith(".stl")]) == pieces
+        # A task the search does not finish in its time (mario K=60 in 1 s): the page offers the nearest
+        # task that works, found by the server's probe with the same seed, and one click runs it.
+        Select(driver.find_element(By.ID, "shape-name")).select_by_value("mario")
+        wait.until(lambda d: "mario: N = 548 voxels" in d.find_element(By.ID, "shape-info").text)
+        for field, value in (("pieces", "60"), ("time-limit", "1")):
+            driver.find_element(By.ID, field).clear()
+            driver.find_element(By.ID, field).send_keys(value)
+        driver.find_element(By.ID, "start").click()
+        offer = driver.find_element(By.ID, "offer")
+        WebDriverWait(driver, 120).until(lambda d: offer.is_displayed())
+        assert "no valid assembly of mario K=60 within 1 s" in driver.find_element(By.ID, "error").text
+        assert offer.text.startswith("Run K=61 (pieces of 8, the last 68): found in "), offer.text
+        if shot:
+            Path(shot).with_suffix(".failed.png").write_bytes(driver.get_screenshot_as_png())
+        offer.click()
+        WebDriverWait(driver, 120).until(
+            lambda d: d.find_element(By.TAG_NAME, "body").get_attribute("data-phase") in ("assembly", "error")
+        )
+        state = driver.find_element(By.ID, "state").text
+        assert state.startswith("solve mario K=61: a valid assembly") and "verified" in state, state
+        if shot:
+            Path(shot).with_suffix(".offer.png").write_bytes(driver.get_screenshot_as_png())
     finally:
         driver.quit()
 

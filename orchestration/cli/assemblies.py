@@ -392,7 +392,7 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         metavar="SECONDS",
         help="when the search finds nothing: search tasks near it (another K, thin parts grown) on the "
         "free cores for at most this long and offer the nearest that works (default: half of "
-        "--time-limit, at most 30; 0: offer none)",
+        "--time-limit, from 10 to 30; 0: offer none)",
     )
     p.set_defaults(func=cmd_solve)
 

@@ -5,35 +5,33 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import shlex
 
 from rllock.core.env import Task, rejections
 from rllock.orchestration.cli.longwork import advice, general_serves
-from rllock.search.probe import Candidate, nearby, probe
+from rllock.search.probe import Candidate, default_probe_seconds, nearby, probe
 
 log = logging.getLogger(__name__)
 
-THIN_SHARE = 0.05
-"""A search that ends short names the shape's thin parts when they hold at least this share of its voxels
-(or a piece's worth)."""
 PROBE_CANDIDATE_SECONDS = 10.0
 """The probe's time for one candidate task: the tasks it finds are those a minute's search finds
 quickly, and it offers the time it took."""
 
 
 def probe_budget(args: argparse.Namespace) -> float:
-    """--probe's seconds, by default half of --time-limit, at most 30 s."""
-    return min(30.0, args.time_limit / 2) if args.probe is None else max(args.probe, 0.0)
+    """--probe's seconds (`default_probe_seconds` unless given)."""
+    return default_probe_seconds(args.time_limit) if args.probe is None else max(args.probe, 0.0)
 
 
 def thin_parts(task: Task, args: argparse.Namespace) -> str | None:
     """Why a figure's search may end short: how much of the shape is thin, and how to grow it (None when
     little of it is, or when --thicken already grew it)."""
-    from rllock.core.thickness import THIN_WIDTH, thicken, thin_voxels
+    from rllock.core.thickness import THIN_WIDTH, thicken, thin_enough_to_matter
 
     grid = task.topology.grid
-    thin = int(thin_voxels(grid).sum())
-    if args.thicken is not None or thin < max(task.piece_size, THIN_SHARE * task.size):
+    thin = None if args.thicken is not None else thin_enough_to_matter(grid, task.piece_size)
+    if thin is None:
         return None
     grown = int(thicken(grid, THIN_WIDTH).sum())
     return (
@@ -99,12 +97,18 @@ def offer(task: Task, args: argparse.Namespace) -> str:
     return (
         f"  a task that works: K={c.pieces}{grown}, pieces of {found.piece_size} and the last "
         f"{found.last_size}; this search (seed {args.seed}) found one in {found.seconds:.1f} s:\n"
-        f"    {retry_command(args, c)}\n"
+        f"    {retry_command(args, c, enough_time(found.seconds or 0.0))}\n"
     )
 
 
-def retry_command(args: argparse.Namespace, candidate: Candidate) -> str:
-    """The `rllock solve` command of `args` with the candidate's K and thickening."""
+def enough_time(seconds: float) -> float:
+    """A time limit that lets the same search find again what it found in `seconds`, on a busier machine."""
+    return float(math.ceil(3 * seconds) + 5)
+
+
+def retry_command(args: argparse.Namespace, candidate: Candidate, time_limit: float) -> str:
+    """The `rllock solve` command of `args` with the candidate's K and thickening, and `time_limit` when
+    the one of `args` is less."""
     words = ["rllock", "solve", "--shape", args.shape]
     if args.resolution is not None:
         words += ["--resolution", str(args.resolution)]
@@ -114,5 +118,7 @@ def retry_command(args: argparse.Namespace, candidate: Candidate) -> str:
     thicken = candidate.thicken if candidate.thicken is not None else args.thicken
     if thicken is not None:
         words += ["--thicken", str(thicken)]
+    if args.time_limit < time_limit:
+        words += ["--time-limit", f"{time_limit:g}"]
     words += ["--seed", str(args.seed), "--out", str(args.out)]
     return shlex.join(words)

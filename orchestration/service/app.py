@@ -164,13 +164,19 @@ def _add_page(api: FastAPI) -> None:
 
 
 async def _grid(
-    limits: Limits, shape: str | None, file: UploadFile | None, resolution: str | None
+    limits: Limits,
+    shape: str | None,
+    file: UploadFile | None,
+    resolution: str | None,
+    thicken: str | None = None,
 ) -> tuple[str, np.ndarray]:
-    """The request's shape: its display name and voxel grid, from a built-in name or the uploaded file."""
+    """The request's shape: its display name and voxel grid, from a built-in name or the uploaded file,
+    its thin parts grown when `thicken` says so."""
     with _refusals():
         upload = await read_upload(file, limits.max_upload_bytes)
+        width = _number("thicken", thicken, int)
         return await asyncio.to_thread(
-            shape_grid, shape or None, upload, _number("resolution", resolution, int), limits
+            shape_grid, shape or None, upload, _number("resolution", resolution, int), limits, width
         )
 
 
@@ -188,11 +194,13 @@ def _add_shapes(api: FastAPI, ingress: Ingress) -> None:
     async def shape(
         shape: str | None = Form(None),
         resolution: str | None = Form(None),
+        thicken: str | None = Form(None),
         file: UploadFile | None = File(None),
     ) -> dict:
-        """A shape (a built-in name, or an uploaded .puz/.vol/.npy file or mesh) before any search: its voxel
-        count N, dimensions, the K that make sense, and its voxels (x fastest, then y, then z)."""
-        label, grid = await _grid(ingress.limits, shape, file, resolution)
+        """A shape (a built-in name, or an uploaded .puz/.vol/.npy file or mesh, its thin parts grown to
+        `thicken` when given) before any search: its voxel count N, dimensions, the K that make sense,
+        how many voxels are thin, and its voxels (x fastest, then y, then z)."""
+        label, grid = await _grid(ingress.limits, shape, file, resolution, thicken)
         flat = np.flatnonzero(grid.transpose(2, 1, 0).ravel())  # x fastest
         return shape_summary(label, grid) | {"voxels": flat.tolist()}
 
@@ -211,13 +219,14 @@ def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
         time_limit: str | None = Form(None),
         seed: str | None = Form(None),
         checkpoint: str | None = Form(None),
+        thicken: str | None = Form(None),
         file: UploadFile | None = File(None),
     ) -> dict:
         """A job: `solve` (the search solver) or `generate` (MCTS with a shipped checkpoint; default the
         one for the task, else `general`) on a built-in shape or an uploaded file, with K = `pieces`."""
         client = request.client.host if request.client else "unknown"
         jobs.check_client(client, limits.max_client_jobs)  # before the upload is read and voxelized
-        label, grid = await _grid(limits, shape, file, resolution)
+        label, grid = await _grid(limits, shape, file, resolution, thicken)
         spec = JobSpec(
             method=method,
             shape=label,
@@ -227,6 +236,7 @@ def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
             time_limit=_number("time_limit", time_limit, float, 60.0),
             seed=_number("seed", seed, int, 0),
             checkpoint=checkpoint or None,
+            thicken=_number("thicken", thicken, int),
         )
         with _refusals():
             spec, _ = await asyncio.to_thread(check_request, spec, grid, limits)

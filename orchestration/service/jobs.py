@@ -60,7 +60,12 @@ class TooManyJobs(Exception):
 
 
 class JobFailed(Exception):
-    """A job's run ended without its files; the message is the record's one-line error."""
+    """A job's run ended without its files; the message is the record's one-line error, and `offer` (a
+    solve job's) the nearest task that works, kept in the record's result."""
+
+    def __init__(self, message: str, offer: dict | None = None):
+        super().__init__(message)
+        self.offer = offer
 
 
 # --- records -----------------------------------------------------------------------------------------
@@ -276,7 +281,9 @@ class JobQueue:
         except JobFailed as exc:
             with self._lock:
                 if self._running.pop(job_id, None) is not None:
-                    self._set(moved(self._records[job_id], "failed", time.time(), error=str(exc)))
+                    offer = None if exc.offer is None else {"offer": exc.offer}
+                    record = self._records[job_id]
+                    self._set(moved(record, "failed", time.time(), error=str(exc), result=offer))
             return
         write_files(self.folder / job_id, files)
         with self._lock:

@@ -62,6 +62,7 @@ class JobSpec:
     time_limit: float = 60.0
     seed: int = 0
     checkpoint: str | None = None  # generate: a shipped checkpoint; None before `check_request`
+    thicken: int | None = None  # the shape's thin parts were grown to this width (`shape_grid`)
 
 
 def too_large(limit: int) -> str:
@@ -70,10 +71,17 @@ def too_large(limit: int) -> str:
 
 
 def shape_grid(
-    name: str | None, upload: tuple[str, bytes] | None, resolution: int | None, limits: Limits
+    name: str | None,
+    upload: tuple[str, bytes] | None,
+    resolution: int | None,
+    limits: Limits,
+    thicken: int | None = None,
 ) -> tuple[str, np.ndarray]:
-    """(the shape's display name, its voxel grid) from a built-in name or an uploaded file's (name, bytes);
-    a one-line error for anything else. A name never reads a file: only built-in shapes have names."""
+    """(the shape's display name, its voxel grid) from a built-in name or an uploaded file's (name, bytes),
+    its thin parts grown to `thicken` when given (`rllock.core.thickness`); a one-line error for anything
+    else. A name never reads a file: only built-in shapes have names."""
+    if thicken is not None and thicken < 2:
+        raise RLLockError(f"thicken takes a width of at least 2 voxels, got {thicken}")
     if (name is None) == (upload is None):
         raise RLLockError("give either a shape name or a file")
     if upload is None:
@@ -95,6 +103,10 @@ def shape_grid(
             raise TooLarge(too_large(limits.max_upload_bytes))
         grid = _read_upload(label, suffix, upload[1], resolution)
     grid = np.asarray(grid, dtype=bool)
+    if thicken is not None:
+        from rllock.core.thickness import thicken as grow
+
+        grid = grow(grid, thicken)
     n = int(grid.sum())
     if n > limits.max_voxels:
         raise TooLarge(f"the shape has {n:,} voxels, more than the server's limit of {limits.max_voxels:,}")
@@ -136,9 +148,18 @@ def sensible_pieces(n: int) -> dict[str, int]:
 
 
 def shape_summary(label: str, grid: np.ndarray) -> dict:
-    """A shape as the page lists it: name, voxel count N, dimensions and the K that make sense."""
+    """A shape as the page lists it: name, voxel count N, dimensions, the K that make sense, and how many
+    voxels lie in thin parts (arms, legs, ears: `rllock.core.thickness`), where growing them can help."""
+    from rllock.core.thickness import thin_voxels
+
     n = int(grid.sum())
-    return {"name": label, "N": n, "dimensions": list(grid.shape), "pieces": sensible_pieces(n)}
+    return {
+        "name": label,
+        "N": n,
+        "dimensions": list(grid.shape),
+        "pieces": sensible_pieces(n),
+        "thin": int(thin_voxels(grid).sum()),
+    }
 
 
 def builtin_rows() -> list[dict]:

@@ -27,6 +27,7 @@ from rllock.orchestration.service.request import JobSpec
 SERVICE, MODEL = "Service", "Model"  # the deployments' names in the application
 GENERATE_BATCH = 8  # lockstep episodes of a generate job: one network request carries them all
 PROGRESS_EVERY_S = 0.5
+PROBE_CANDIDATE_S = 10.0  # a failed solve job's probe: seconds per task tried
 
 Report = Callable[[dict], None]
 EvaluateFor = Callable[[Task], tuple[Any, list]]
@@ -92,10 +93,62 @@ def _solve(spec: JobSpec, task: Task, out: Path, report: Report) -> dict:
             picture=_picture(),
         )
         return {"assemblies": 1, "seconds": round(time.monotonic() - start, 3), "nodes": stats.expansions}
-    raise RLLockError(
+    text = (
         f"no valid assembly of {spec.shape} K={task.pieces} within {spec.time_limit:g} s: "
-        f"best {stats.placed} of {task.pieces - 1} pieces placed; give more time or another K"
+        f"best {stats.placed} of {task.pieces - 1} pieces placed"
     )
+    offer = _offer(spec, task, report)
+    if offer is None:
+        raise NothingFound(f"{text}; give more time or another K")
+    grown = "" if offer["thicken"] is None else f" with the thin parts grown (thicken {offer['thicken']})"
+    raise NothingFound(
+        f"{text}; K={offer['pieces']}{grown} works: pieces of {offer['piece_size']}, the last "
+        f"{offer['last_size']}, found in {offer['seconds']} s",
+        offer,
+    )
+
+
+class NothingFound(RLLockError):
+    """A solve job's search found nothing; `offer`: the nearest task that works, when the probe found one
+    (`rllock.search.probe`): its pieces, thicken, piece_size, last_size and seconds."""
+
+    def __init__(self, message: str, offer: dict | None = None):
+        super().__init__(message)
+        self.offer = offer
+
+    def __reduce__(self):  # Ray sends it back to the ingress
+        return NothingFound, (str(self), self.offer)
+
+
+def _offer(spec: JobSpec, task: Task, report: Report) -> dict | None:
+    """The nearest task that works (`rllock.search.probe`, on this job's one core, for
+    `default_probe_seconds`): what `_solve` offers when its search found nothing."""
+    from rllock.core.thickness import THIN_WIDTH, thin_enough_to_matter
+    from rllock.search.probe import default_probe_seconds, nearby, probe
+
+    budget = default_probe_seconds(spec.time_limit)
+    grid = task.topology.grid
+    thin = spec.thicken is None and thin_enough_to_matter(grid, task.piece_size) is not None
+    report({"placed": -1, "pieces": task.pieces, "probe": round(budget)})
+    found = probe(
+        grid,
+        task.removal,
+        nearby(task.pieces, task.size, THIN_WIDTH if thin else None),
+        seed=spec.seed,
+        seconds=min(PROBE_CANDIDATE_S, budget),
+        budget=budget,
+        workers=1,
+    )
+    if found is None:
+        return None
+    c = found.candidate
+    return {
+        "pieces": c.pieces,
+        "thicken": c.thicken if c.thicken is not None else spec.thicken,
+        "piece_size": found.piece_size,
+        "last_size": found.last_size,
+        "seconds": round(found.seconds or 0.0, 1),
+    }
 
 
 def _generate(spec: JobSpec, task: Task, out: Path, report: Report, evaluate_for: EvaluateFor) -> dict:
@@ -215,7 +268,8 @@ class RayRunner:
         try:
             return ray.get(handle)
         except Exception as exc:  # the job's error, or its worker's death: the record says which
-            raise JobFailed(failure(exc)) from None
+            cause = getattr(exc, "cause", None) or exc
+            raise JobFailed(failure(exc), getattr(cause, "offer", None)) from None
 
     def cancel(self, handle: ray.ObjectRef) -> None:
         ray.cancel(handle, force=True)

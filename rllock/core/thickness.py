@@ -38,3 +38,14 @@ def thicken(grid: np.ndarray, width: int = THIN_WIDTH) -> np.ndarray:
     found = np.argwhere(out)
     lo, hi = found.min(axis=0), found.max(axis=0) + 1
     return out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+
+
+THIN_SHARE = 0.05
+"""Thin parts are worth a word (and a try with them grown) when they hold at least this share of a shape's
+voxels, or a piece's worth."""
+
+
+def thin_enough_to_matter(grid: np.ndarray, piece_size: int) -> int | None:
+    """How many of `grid`'s voxels are thin (`thin_voxels`), when that is worth saying; else None."""
+    thin = int(thin_voxels(grid).sum())
+    return thin if thin >= max(piece_size, THIN_SHARE * int(grid.sum())) else None

@@ -33,6 +33,12 @@ class Outcome:
     last_size: int
 
 
+def default_probe_seconds(time_limit: float) -> float:
+    """A failed search's probe: half its time limit, from 10 s (a nearby task found in a few seconds
+    is worth the wait after a short search) to 30 s."""
+    return min(30.0, max(10.0, time_limit / 2))
+
+
 def nearby(pieces: int, size: int, thicken: int | None = None) -> list[Candidate]:
     """Tasks near K = `pieces` on `size` voxels, nearest first: one or two pieces more or fewer (one more
     often leaves a last piece well over the others, which is easier), then larger pieces (a tenth, a
@@ -57,13 +63,16 @@ def probe(
     workers: int | None = None,
 ) -> Outcome | None:
     """The nearest of `candidates` (in their order) that the solver with `seed` finds an assembly for
-    within `seconds`, trying `workers` at once (default: the cores this process may use) for at most
-    `budget` seconds in all; None when none of those tried did."""
+    within `seconds`, trying `workers` at once (default: the cores this process may use; one: in this
+    process) for at most `budget` seconds in all; None when none of those tried did."""
     workers = workers or len(os.sched_getaffinity(0))
     rounds = max(1, int(budget // max(seconds, 1e-3)))
     todo = candidates[: rounds * workers]
     if not todo:
         return None
+    if workers == 1:  # one at a time here: no process to start (a service's job has one core)
+        tried = (_try((grid, removal, c, seed, seconds)) for c in todo)
+        return next((o for o in tried if o.seconds is not None), None)
     pool = multiprocessing.get_context("spawn").Pool(min(workers, len(todo)))
     try:
         for start in range(0, len(todo), workers):

@@ -28,15 +28,19 @@ function showError(message) {
   if (message) document.body.dataset.phase = "error";
 }
 
+// Mesh files, voxelized at the resolution the page asks for.
+const MESH = /\.(stl|obj|ply|off|glb|gltf|3mf)$/i;
+
 function shapeForm() {
   const form = new FormData();
   const file = $("shape-file").files[0];
   if (file) {
     form.append("file", file, file.name);
-    if (/\.(stl|obj)$/i.test(file.name)) form.append("resolution", $("resolution").value);
+    if (MESH.test(file.name)) form.append("resolution", $("resolution").value);
   } else {
     form.append("shape", $("shape-name").value);
   }
+  if ($("thicken").value) form.append("thicken", $("thicken").value);
   return form;
 }
 
@@ -158,7 +162,10 @@ async function preview() {
     const k = info.pieces;
     $("shape-info").textContent =
       `${info.name}: N = ${info.N} voxels, ${info.dimensions.join(" × ")}. K can be 2 to ${k.max}; ` +
-      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}; suggested ${k.suggested}, pieces of about 20 voxels, quick to solve.`;
+      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}; suggested ${k.suggested}, pieces of about 20 voxels, quick to solve.` +
+      (!$("thicken").value && info.thin >= Math.max(info.N / 20, 20) ?
+        ` ${info.thin} voxels lie in thin parts (arms, legs, ears), where pieces have little room: ` +
+        "growing them to 3 voxels, or larger pieces, helps." : "");
     $("pieces").max = k.max;
     $("pieces").value = k.suggested;
     view.show([{ voxels: cellsOf(info.voxels, info.dimensions), color: 0xb8bec6 }], info.dimensions);
@@ -194,6 +201,9 @@ function describe(job) {
   if (job.state === "queued") return `${what}: waiting in the queue (place ${job.queue_position ?? "?"})`;
   if (job.state === "running") {
     if (!p) return `${what}: starting…`;
+    if (p.probe !== undefined) {
+      return `${what}: no assembly within ${spec.time_limit} s; looking for a task near it that works (up to ${p.probe} s)…`;
+    }
     return `${what}: best ${p.placed} of ${spec.pieces - 1} pieces placed, ${p.elapsed} s` +
       (p.nodes !== undefined ? `, ${p.nodes} nodes` : `, ${p.episodes} episodes`);
   }
@@ -221,7 +231,10 @@ function follow(job) {
     $("cancel").disabled = true;
     $("start").disabled = false;
     if (now.state === "done") showAssembly(now);
-    else if (now.state === "failed") showError(now.error);
+    else if (now.state === "failed") {
+      showError(now.error);
+      if (now.result && now.result.offer) showOffer(now.result.offer);
+    }
     else document.body.dataset.phase = "ready";
   };
   events.onerror = () => {
@@ -229,9 +242,31 @@ function follow(job) {
   };
 }
 
+// A failed solve's nearest task that works (found by the server's probe with the same seed): one click
+// runs it.
+function showOffer(offer) {
+  const grown = offer.thicken ? `, thin parts grown to ${offer.thicken}` : "";
+  $("offer").textContent = `Run K=${offer.pieces}${grown} (pieces of ${offer.piece_size}, the last ` +
+    `${offer.last_size}): found in ${offer.seconds} s`;
+  $("offer").onclick = async () => {
+    const thicken = offer.thicken ? String(offer.thicken) : "";
+    if ($("thicken").value !== thicken) {
+      $("thicken").value = thicken;
+      await preview(); // the grown shape on view; it resets K to the suggested one
+    }
+    $("pieces").value = offer.pieces;
+    // Time enough for the same search on a busier server: it found it in offer.seconds.
+    const enough = Math.ceil(3 * offer.seconds) + 5;
+    if (Number($("time-limit").value) < enough) $("time-limit").value = enough;
+    $("job-form").requestSubmit();
+  };
+  $("offer-row").hidden = false;
+}
+
 async function start(event) {
   event.preventDefault();
   showError("");
+  $("offer-row").hidden = true;
   const form = shapeForm();
   form.append("pieces", $("pieces").value);
   form.append("removal", $("removal").value);
@@ -366,10 +401,11 @@ function play() {
 $("shape-name").addEventListener("change", () => { $("shape-file").value = ""; $("resolution-row").hidden = true; preview(); });
 $("shape-file").addEventListener("change", () => {
   const file = $("shape-file").files[0];
-  $("resolution-row").hidden = !(file && /\.(stl|obj)$/i.test(file.name));
+  $("resolution-row").hidden = !(file && MESH.test(file.name));
   preview();
 });
 $("resolution").addEventListener("change", preview);
+$("thicken").addEventListener("change", preview);
 $("job-form").addEventListener("submit", start);
 $("cancel").addEventListener("click", cancel);
 $("slider").addEventListener("input", () => place(Number($("slider").value)));
