@@ -88,14 +88,14 @@ def test_ctrl_c_in_generate_keeps_complete_folders_and_says_so(tmp_path):
 def test_a_failed_solve_says_what_it_reached_and_offers_a_task_that_works(tmp_path):
     out = tmp_path / "o"
     code, stdout, stderr = run_cli(
-        "solve", "--shape", "desia-bunny", "--pieces", "80", "--time-limit", "12", "--out", str(out)
+        "solve", "--shape", "desia-bunny", "--pieces", "80", "--time-limit", "6", "--out", str(out)
     )  # fmt: skip
     assert code == 1
     # stderr is a pipe, not a terminal: the search logs its progress every few seconds instead of a bar.
     lines = [line for line in stderr.splitlines() if "solve desia-bunny K=80: " in line]
-    assert len(lines) >= 2 and all("nodes/s" in line and "restarts, best" in line for line in lines), stderr
+    assert len(lines) >= 1 and all("nodes/s" in line and "restarts, best" in line for line in lines), stderr
     first, best, thin, works, command = stdout.strip().splitlines()
-    assert first.startswith("solve: no valid assembly of desia-bunny K=80 within 12 s (")
+    assert first.startswith("solve: no valid assembly of desia-bunny K=80 within 6 s (")
     placed = int(best.split("best: ")[1].split(" of 79")[0])
     assert (
         0 < placed < 79 and f"chunks sampled for piece {placed + 1}" in best and "fail connectivity" in best

@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import time
 
+from helpers import run_cli
+
 from rllock.core.shapes import load_shape
-from rllock.search.probe import Candidate, nearby, probe
+from rllock.core.verifier import verify_labels
+from rllock.files.assembly import read_assembly
+from rllock.search.probe import Candidate, nearby, probe, suggestions
 
 
 def test_nearby_tasks_come_nearest_first_within_the_shape():
@@ -15,6 +19,25 @@ def test_nearby_tasks_come_nearest_first_within_the_shape():
     assert with_thicker[:3] == [Candidate(41), Candidate(39), Candidate(40, 3)]
     # K stays between 2 and N, and the failed K itself is not offered again.
     assert [c.pieces for c in nearby(3, 4)] == [4, 2]
+
+
+def test_suggestions_go_from_pieces_of_20_voxels_to_larger_ones():
+    assert [c.pieces for c in suggestions(548)] == [27, 22, 18, 14, 9, 7, 5]
+    assert [c.pieces for c in suggestions(64)] == [3, 2]  # K from 2 up, each once
+
+
+def test_solve_without_pieces_takes_a_k_the_probe_found_and_says_so(tmp_path):
+    out = tmp_path / "o"
+    code, stdout, stderr = run_cli("solve", "--shape", "cube5", "--out", str(out))
+    # N = 125: pieces of about 20 voxels are K = 6, found at once.
+    assert code == 0 and "solve: 1 valid assembly of cube5 K=6 in" in stdout, stderr
+    assert "no --pieces: trying pieces of 20, 25, 30, 40, 60, 80, 120 voxels" in stderr
+    assert "K=6: pieces of 20, the last 25; this search found one in" in stderr
+    assert verify_labels(read_assembly(out / "assembly_001")[0]).valid
+    code, _, stderr = run_cli("solve", "--shape", "cube5", "--probe", "0", "--out", str(tmp_path / "p"))
+    assert code == 2 and stderr.strip().endswith(
+        "give --pieces: without it solve tries piece counts, which --probe 0 turns off"
+    ), stderr
 
 
 def test_the_probe_offers_the_nearest_that_works_and_stops_the_others():

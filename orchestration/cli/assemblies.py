@@ -30,13 +30,14 @@ from rllock.orchestration.cli.common import (
     fresh_out,
     picture_writer,
 )
-from rllock.orchestration.cli.failure import nothing_found, offer
+from rllock.orchestration.cli.failure import nothing_found, offer, suggested_pieces
 from rllock.orchestration.cli.longwork import (
     INTERRUPTED,
     graceful_stop,
     is_interrupt,
     kept,
 )
+from rllock.search.probe import SUGGESTED_SIZES
 
 log = logging.getLogger(__name__)
 PROGRESS_LOG_EVERY = 5.0  # seconds between progress lines in a log (stderr not a terminal)
@@ -97,7 +98,16 @@ def cmd_solve(args: argparse.Namespace) -> int:
         raise RLLockError(
             "--threads is for one search; --workers N shares its N cores between seeds and threads"
         )
-    task = make_task(_shape(args), args.pieces, args.removal, name=args.shape)
+    grid = _shape(args)
+    pieces = args.pieces if args.pieces is not None else suggested_pieces(grid, args)
+    if pieces is None:
+        sys.stdout.write(
+            f"solve: no piece count for {args.shape} with pieces of {SUGGESTED_SIZES[0]} to "
+            f"{SUGGESTED_SIZES[-1]} voxels gave an assembly within the probe's time; give --pieces "
+            "(and more --time-limit), or --thicken 3 for a figure's thin parts\n"
+        )
+        return 1
+    task = make_task(grid, pieces, args.removal, name=args.shape)
     check_feasible(task)
     if not tight(task.size, task.pieces):
         n = task.piece_size
@@ -344,7 +354,7 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_verify)
 
     p = subparsers.add_parser("solve", help="find assemblies by randomized search (no training needed)")
-    add_task_args(p)
+    add_task_args(p, pieces_help="default: a K the search finds an assembly for quickly, tried first")
     add_protocol_args(p, count=1, time_limit=60.0, batch=False, seed=False)
     p.add_argument("--out", required=True, help="folder; each assembly goes to OUT/assembly_NNN/")
     p.add_argument(

@@ -57,7 +57,9 @@ def add_protocol_args(
         p.add_argument("--seed", type=int, default=0, help="same seed, same results (default %(default)s)")
 
 
-def add_task_args(p: argparse.ArgumentParser) -> None:
+def add_task_args(p: argparse.ArgumentParser, pieces_help: str | None = None) -> None:
+    """--shape, --resolution, --pieces, --removal and --seed; `pieces_help`: --pieces is optional, and
+    this says what its absence does."""
     p.add_argument(
         "--shape",
         required=True,
@@ -71,7 +73,10 @@ def add_task_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="for mesh shapes: at most this many voxels along the longest side (default 8)",
     )
-    p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
+    if pieces_help is None:
+        p.add_argument("--pieces", "-K", type=int, required=True, help="piece count K")
+    else:
+        p.add_argument("--pieces", "-K", type=int, default=None, help=f"piece count K ({pieces_help})")
     p.add_argument(
         "--removal",
         choices=REMOVAL_MODES,

@@ -1,5 +1,6 @@
 """What `solve` says when its search found nothing: how far it got and why its next piece failed, the
-shape's thin parts, and a task near it that works, found by a bounded probe (`rllock.search.probe`)."""
+shape's thin parts, and a task near it that works, found by a bounded probe (`rllock.search.probe`); and
+the K it suggests, by the same probe, when it is given none."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import math
 import shlex
 
 from rllock.core.env import Task, rejections
+from rllock.errors import RLLockError
 from rllock.orchestration.cli.longwork import advice, general_serves
-from rllock.search.probe import Candidate, default_probe_seconds, nearby, probe
+from rllock.search.probe import SUGGESTED_SIZES, Candidate, default_probe_seconds, nearby, probe, suggestions
 
 log = logging.getLogger(__name__)
 
@@ -22,6 +24,35 @@ quickly, and it offers the time it took."""
 def probe_budget(args: argparse.Namespace) -> float:
     """--probe's seconds (`default_probe_seconds` unless given)."""
     return default_probe_seconds(args.time_limit) if args.probe is None else max(args.probe, 0.0)
+
+
+def suggested_pieces(grid, args: argparse.Namespace) -> int | None:
+    """A K for `grid` when --pieces is not given: the first of `rllock.search.probe.SUGGESTED_SIZES`
+    (pieces of about 20 voxels, then larger) that this search (--seed) finds an assembly for within the
+    probe's seconds, tried on the free cores for --probe's seconds; None when none did."""
+    budget = probe_budget(args)
+    if budget <= 0:
+        raise RLLockError("give --pieces: without it solve tries piece counts, which --probe 0 turns off")
+    seconds = min(PROBE_CANDIDATE_SECONDS, budget)
+    log.info(
+        "no --pieces: trying pieces of %s voxels, %g s each, for up to %.0f s",
+        ", ".join(map(str, SUGGESTED_SIZES)),
+        seconds,
+        budget,
+    )
+    found = probe(
+        grid, args.removal, suggestions(int(grid.sum())), seed=args.seed, seconds=seconds, budget=budget
+    )
+    if found is not None:
+        log.info(
+            "K=%d: pieces of %d, the last %d; this search found one in %.1f s",
+            found.candidate.pieces,
+            found.piece_size,
+            found.last_size,
+            found.seconds,
+        )
+        return found.candidate.pieces
+    return None
 
 
 def thin_parts(task: Task, args: argparse.Namespace) -> str | None:

@@ -1,5 +1,6 @@
-"""A bounded probe: tasks near one whose search failed (another K, the thin parts grown), each searched by
-the solver for a few seconds on the free cores, so that a failure can offer a task that works.
+"""A bounded probe: tasks near one whose search failed (another K, the thin parts grown), or the piece counts
+a shape suggests, each searched by the solver for a few seconds on the free cores, so that a failure can
+offer a task that works and a suggestion is one.
 
 The offer holds by construction: the solver is the same search with the same seed, which finds the same
 assembly again in about the same time. Candidates are tried nearest first, as many at once as there are
@@ -37,6 +38,19 @@ def default_probe_seconds(time_limit: float) -> float:
     """A failed search's probe: half its time limit, from 10 s (a nearby task found in a few seconds
     is worth the wait after a short search) to 30 s."""
     return min(30.0, max(10.0, time_limit / 2))
+
+
+SUGGESTED_SIZES = (20, 25, 30, 40, 60, 80, 120)
+"""Piece sizes a suggestion tries, in order of preference: pieces of about 20 voxels make a puzzle of
+many pieces that the search finds quickly on most shapes; larger ones where it does not (thin figures,
+shapes of many thousand voxels)."""
+
+
+def suggestions(size: int) -> list[Candidate]:
+    """The K of each of SUGGESTED_SIZES for a shape of `size` voxels (K = N / n rounded: a last piece
+    a little over the others, easier than the smallest), in order; K from 2 up."""
+    ks = [max(2, round(size / n)) for n in SUGGESTED_SIZES]
+    return [Candidate(k) for k in dict.fromkeys(ks) if k <= size]
 
 
 def nearby(pieces: int, size: int, thicken: int | None = None) -> list[Candidate]:
