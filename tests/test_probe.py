@@ -24,6 +24,7 @@ def test_nearby_tasks_come_nearest_first_within_the_shape():
 def test_suggestions_go_from_pieces_of_20_voxels_to_larger_ones():
     assert [c.pieces for c in suggestions(548)] == [27, 22, 18, 14, 9, 7, 5]
     assert [c.pieces for c in suggestions(64)] == [3, 2]  # K from 2 up, each once
+    assert [c.pieces for c in suggestions(18_198)] == [200, 152]  # at most 200 pieces
 
 
 def test_solve_without_pieces_takes_a_k_the_probe_found_and_says_so(tmp_path):

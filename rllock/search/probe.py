@@ -46,10 +46,16 @@ many pieces that the search finds quickly on most shapes; larger ones where it d
 shapes of many thousand voxels)."""
 
 
+SUGGESTED_MAX_PIECES = 200
+"""A suggestion's most pieces: the search's time grows with K, and a few hundred pieces take it more than
+a probe's seconds (a scan of 18,198 voxels: K = 910 took a minute); larger shapes get larger pieces."""
+
+
 def suggestions(size: int) -> list[Candidate]:
     """The K of each of SUGGESTED_SIZES for a shape of `size` voxels (K = N / n rounded: a last piece
-    a little over the others, easier than the smallest), in order; K from 2 up."""
-    ks = [max(2, round(size / n)) for n in SUGGESTED_SIZES]
+    a little over the others, easier than the smallest), at most SUGGESTED_MAX_PIECES, in order; K from 2
+    up."""
+    ks = [min(max(2, round(size / n)), SUGGESTED_MAX_PIECES) for n in SUGGESTED_SIZES]
     return [Candidate(k) for k in dict.fromkeys(ks) if k <= size]
 
 
