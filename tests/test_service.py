@@ -151,7 +151,7 @@ BAD = [
     ({"shape": "cube4", "pieces": "65"}, None, 400, "larger than the shape"),
     ({"shape": "cube4", "pieces": "1"}, None, 400, "at least 2"),
     ({"shape": "cube4", "pieces": "six"}, None, 400, "pieces must be a number"),
-    ({"shape": "cube4"}, None, 422, "pieces"),
+    ({"shape": "cube4", "method": "generate"}, None, 400, "give the piece count K"),
     ({"shape": "cube4", "pieces": "6", "method": "magic"}, None, 400, "unknown method"),
     ({"shape": "cube4", "pieces": "6", "time_limit": "121"}, None, 400, "at most 120"),
     ({"shape": "cube4", "pieces": "6", "resolution": "8"}, None, 400, "resolution applies only"),
@@ -292,13 +292,16 @@ def test_the_web_page_in_headless_chromium(server, tmp_path):
         resolution.clear()
         resolution.send_keys("10\t")  # a change event: the preview again, at 10 voxels along the longest side
         wait.until(lambda d: "bracket.stl: N = 250 voxels" in d.find_element(By.ID, "shape-info").text)
-        pieces = int(driver.find_element(By.ID, "pieces").get_attribute("value"))
+        # K left blank: the server picks it, pieces of about 20 voxels where the search finds them quickly.
+        assert driver.find_element(By.ID, "pieces").get_attribute("value") == ""
         driver.find_element(By.ID, "start").click()
         WebDriverWait(driver, 120).until(
             lambda d: d.find_element(By.TAG_NAME, "body").get_attribute("data-phase") in ("assembly", "error")
         )
         assert driver.find_element(By.ID, "error").text == ""
-        assert "verified" in driver.find_element(By.ID, "state").text
+        state = driver.find_element(By.ID, "state").text
+        assert state.startswith("solve bracket.stl K=12: a valid assembly") and "verified" in state, state
+        pieces = 12  # N = 250: pieces of about 20 voxels
         assembled = driver.get_screenshot_as_png()
         assert _colourful(assembled) > 5000
         checkboxes = driver.find_elements(By.CSS_SELECTOR, "#piece-list input[type=checkbox]")

@@ -211,7 +211,7 @@ def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
     @api.post("/api/jobs", status_code=201)
     async def create(
         request: Request,
-        pieces: str = Form(...),
+        pieces: str | None = Form(None),
         method: str = Form("solve"),
         shape: str | None = Form(None),
         removal: str = Form("straight"),
@@ -223,7 +223,9 @@ def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
         file: UploadFile | None = File(None),
     ) -> dict:
         """A job: `solve` (the search solver) or `generate` (MCTS with a shipped checkpoint; default the
-        one for the task, else `general`) on a built-in shape or an uploaded file, with K = `pieces`."""
+        one for the task, else `general`) on a built-in shape or an uploaded file, with K = `pieces`; a solve
+        without `pieces` takes the first K of pieces of about 20 voxels, then larger, that a probe finds an
+        assembly for (`rllock.search.probe.suggestions`)."""
         client = request.client.host if request.client else "unknown"
         jobs.check_client(client, limits.max_client_jobs)  # before the upload is read and voxelized
         label, grid = await _grid(limits, shape, file, resolution, thicken)
@@ -239,7 +241,7 @@ def _add_jobs(api: FastAPI, ingress: Ingress) -> None:
             thicken=_number("thicken", thicken, int),
         )
         with _refusals():
-            spec, _ = await asyncio.to_thread(check_request, spec, grid, limits)
+            spec = await asyncio.to_thread(check_request, spec, grid, limits)
         return jobs.submit(client, spec, grid, limits.max_client_jobs)
 
     @api.get("/api/jobs")

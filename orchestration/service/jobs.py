@@ -297,11 +297,11 @@ class JobQueue:
         if before is None or before.state != record.state:
             spec = record.spec
             log.info(
-                "job %s (%s %s K=%d): %s%s",
+                "job %s (%s %s K=%s): %s%s",
                 record.id,
                 spec.method,
                 spec.shape,
-                spec.pieces,
+                "auto" if spec.pieces is None else spec.pieces,
                 record.state,
                 f": {record.error}" if record.error else "",
             )

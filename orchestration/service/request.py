@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from rllock.config import ServeConfig
-from rllock.core.env import Task, make_task
+from rllock.core.env import make_task
 from rllock.core.reference_checkers import REMOVAL_MODES
 from rllock.core.shapes import MESH_FORMATS, MESH_SUFFIXES, VENDORED_SHAPES, builtin_shape
 from rllock.errors import RLLockError
@@ -56,7 +56,7 @@ class JobSpec:
 
     method: str
     shape: str  # a built-in name, or the uploaded file's name (shown only)
-    pieces: int
+    pieces: int | None  # None: a solve job takes the first K a probe finds an assembly for (`run_job`)
     removal: str = "straight"
     resolution: int | None = None
     time_limit: float = 60.0
@@ -172,10 +172,10 @@ def builtin_rows() -> list[dict]:
     return rows
 
 
-def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> tuple[JobSpec, Task]:
-    """The spec with its checkpoint chosen, and its task, after every check that can fail before a
-    search: the method, K against N, the removal mode, the time limit, a task with no assembly, and for
-    generate a shipped checkpoint that plays the task."""
+def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> JobSpec:
+    """The spec with its checkpoint chosen, after every check that can fail before a search: the method,
+    K against N, the removal mode, the time limit, a task with no assembly, and for generate a shipped
+    checkpoint that plays the task."""
     from rllock.core.feasibility import check_feasible
 
     if spec.method not in METHODS:
@@ -184,6 +184,12 @@ def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> tuple[JobS
         raise RLLockError(f"unknown removal mode {spec.removal!r}: use one of {', '.join(REMOVAL_MODES)}")
     if not (math.isfinite(spec.time_limit) and 0 < spec.time_limit <= limits.max_time_limit):
         raise RLLockError(f"the time limit must be more than 0 and at most {limits.max_time_limit:g} s")
+    if spec.pieces is None:
+        if spec.method != "solve":
+            raise RLLockError("give the piece count K: only the solver tries piece counts itself")
+        if spec.checkpoint is not None:
+            raise RLLockError("a checkpoint applies only to the generate method")
+        return spec
     task = make_task(grid, spec.pieces, spec.removal, name=spec.shape)
     check_feasible(task)
     if spec.method == "generate":
@@ -191,7 +197,7 @@ def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> tuple[JobS
         from rllock.search.serving import checkpoint_for, served
 
         if spec.checkpoint is None:
-            return replace(spec, checkpoint=checkpoint_for(task)), task
+            return replace(spec, checkpoint=checkpoint_for(task))
         if spec.checkpoint not in shipped_names():
             raise RLLockError(
                 f"unknown checkpoint {spec.checkpoint!r}: use one of {', '.join(shipped_names())}"
@@ -199,7 +205,7 @@ def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> tuple[JobS
         served(read_metadata(SHIPPED / spec.checkpoint), SHIPPED / spec.checkpoint, task)
     elif spec.checkpoint is not None:
         raise RLLockError("a checkpoint applies only to the generate method")
-    return spec, task
+    return spec
 
 
 def spec_json(spec: JobSpec) -> dict:

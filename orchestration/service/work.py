@@ -42,7 +42,8 @@ def run_job(
     """(summary, files by relative path) of one job, run in a scratch folder: its assemblies, each
     verified and written with its picture. `report` takes progress as it comes; `evaluate_for(task)`
     (generate only) gives (the policy without weights, the batched network evaluation)."""
-    task = make_task(grid, spec.pieces, spec.removal, name=spec.shape)
+    pieces = spec.pieces if spec.pieces is not None else _suggested(spec, grid, report)
+    task = make_task(grid, pieces, spec.removal, name=spec.shape)
     with tempfile.TemporaryDirectory(prefix="rllock-job-") as folder:
         out = Path(folder)
         if spec.method == "solve":
@@ -92,7 +93,12 @@ def _solve(spec: JobSpec, task: Task, out: Path, report: Report) -> dict:
             timings={"seconds": round(found.seconds, 4), "node_expansions": found.expansions},
             picture=_picture(),
         )
-        return {"assemblies": 1, "seconds": round(time.monotonic() - start, 3), "nodes": stats.expansions}
+        return {
+            "assemblies": 1,
+            "pieces": task.pieces,
+            "seconds": round(time.monotonic() - start, 3),
+            "nodes": stats.expansions,
+        }
     text = (
         f"no valid assembly of {spec.shape} K={task.pieces} within {spec.time_limit:g} s: "
         f"best {stats.placed} of {task.pieces - 1} pieces placed"
@@ -118,6 +124,30 @@ class NothingFound(RLLockError):
 
     def __reduce__(self):  # Ray sends it back to the ingress
         return NothingFound, (str(self), self.offer)
+
+
+def _suggested(spec: JobSpec, grid: np.ndarray, report: Report) -> int:
+    """A solve job's K when it names none: the first of `rllock.search.probe.suggestions` (pieces of about
+    20 voxels, then larger) that this search (its seed) finds an assembly for, on the job's one core."""
+    from rllock.search.probe import SUGGESTED_SIZES, default_probe_seconds, probe, suggestions
+
+    budget = default_probe_seconds(spec.time_limit)
+    report({"placed": -1, "pieces": None, "choosing": round(budget)})
+    found = probe(
+        grid,
+        spec.removal,
+        suggestions(int(grid.sum())),
+        seed=spec.seed,
+        seconds=min(PROBE_CANDIDATE_S, budget),
+        budget=budget,
+        workers=1,
+    )
+    if found is None:
+        raise NothingFound(
+            f"no piece count for {spec.shape} with pieces of {SUGGESTED_SIZES[0]} to {SUGGESTED_SIZES[-1]} "
+            f"voxels gave an assembly within {budget:g} s; give K, or grow its thin parts (thicken 3)"
+        )
+    return found.candidate.pieces
 
 
 def _offer(spec: JobSpec, task: Task, report: Report) -> dict | None:

@@ -162,12 +162,13 @@ async function preview() {
     const k = info.pieces;
     $("shape-info").textContent =
       `${info.name}: N = ${info.N} voxels, ${info.dimensions.join(" × ")}. K can be 2 to ${k.max}; ` +
-      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}; suggested ${k.suggested}, pieces of about 20 voxels, quick to solve.` +
+      `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}. Left blank, the solver picks K: pieces of about ` +
+      "20 voxels, or larger where those take it more than a few seconds." +
       (!$("thicken").value && info.thin >= Math.max(info.N / 20, 20) ?
         ` ${info.thin} voxels lie in thin parts (arms, legs, ears), where pieces have little room: ` +
         "growing them to 3 voxels, or larger pieces, helps." : "");
     $("pieces").max = k.max;
-    $("pieces").value = k.suggested;
+    $("pieces").value = "";
     view.show([{ voxels: cellsOf(info.voxels, info.dimensions), color: 0xb8bec6 }], info.dimensions);
     $("controls").hidden = true;
     document.body.dataset.phase = "ready";
@@ -194,17 +195,26 @@ async function loadShapes() {
 
 // ---- jobs ------------------------------------------------------------------------------------------
 
+// K of a job: asked for, or chosen by the server (its progress, then its result) when left blank.
+function pieceCount(job) {
+  return job.spec.pieces ?? job.progress?.pieces ?? job.result?.pieces ?? null;
+}
+
 function describe(job) {
   const p = job.progress;
   const spec = job.spec;
-  const what = `${spec.method} ${spec.shape} K=${spec.pieces}`;
+  const k = pieceCount(job);
+  const what = `${spec.method} ${spec.shape} K=${k ?? "auto"}`;
   if (job.state === "queued") return `${what}: waiting in the queue (place ${job.queue_position ?? "?"})`;
   if (job.state === "running") {
     if (!p) return `${what}: starting…`;
+    if (p.choosing !== undefined) {
+      return `${what}: choosing K, pieces of about 20 voxels or larger (up to ${p.choosing} s)…`;
+    }
     if (p.probe !== undefined) {
       return `${what}: no assembly within ${spec.time_limit} s; looking for a task near it that works (up to ${p.probe} s)…`;
     }
-    return `${what}: best ${p.placed} of ${spec.pieces - 1} pieces placed, ${p.elapsed} s` +
+    return `${what}: best ${p.placed} of ${k - 1} pieces placed, ${p.elapsed} s` +
       (p.nodes !== undefined ? `, ${p.nodes} nodes` : `, ${p.episodes} episodes`);
   }
   if (job.state === "done") return `${what}: a valid assembly in ${job.result.seconds.toFixed(1)} s, verified.`;
@@ -225,7 +235,8 @@ function follow(job) {
     page.job = now;
     $("state").textContent = describe(now);
     const p = now.progress;
-    $("progress").value = now.state === "done" ? 1 : p ? p.placed / Math.max(now.spec.pieces - 1, 1) : 0;
+    const k = pieceCount(now);
+    $("progress").value = now.state === "done" ? 1 : p && k ? Math.max(p.placed, 0) / Math.max(k - 1, 1) : 0;
     if (!FINAL.has(now.state)) return;
     events.close();
     $("cancel").disabled = true;
@@ -268,7 +279,7 @@ async function start(event) {
   showError("");
   $("offer-row").hidden = true;
   const form = shapeForm();
-  form.append("pieces", $("pieces").value);
+  if ($("pieces").value) form.append("pieces", $("pieces").value);
   form.append("removal", $("removal").value);
   form.append("method", $("method").value);
   form.append("time_limit", $("time-limit").value);
