@@ -8,6 +8,7 @@ workers; the probe stops after the first round that finds one, and offers the ne
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import time
@@ -83,9 +84,11 @@ def probe(
     workers: int | None = None,
 ) -> Outcome | None:
     """The nearest of `candidates` (in their order) that the solver with `seed` finds an assembly for
-    within `seconds`, trying `workers` at once (default: the cores this process may use; one: in this
-    process) for at most `budget` seconds in all; None when none of those tried did."""
+    within `seconds` (more where the budget leaves more to each), trying `workers` at once (default: the
+    cores this process may use; one: in this process) for at most `budget` seconds in all; None when
+    none of those tried did."""
     workers = workers or len(os.sched_getaffinity(0))
+    seconds = max(seconds, min(budget, budget / math.ceil(max(len(candidates), 1) / workers)))
     rounds = max(1, int(budget // max(seconds, 1e-3)))
     todo = candidates[: rounds * workers]
     if not todo:
