@@ -12,13 +12,18 @@ import shlex
 from rllock.core.env import Task, rejections
 from rllock.errors import RLLockError
 from rllock.orchestration.cli.longwork import advice, general_serves
-from rllock.search.probe import SUGGESTED_SIZES, Candidate, default_probe_seconds, nearby, probe, suggestions
+from rllock.search.probe import (
+    NEARBY_SECONDS,
+    SUGGEST_SECONDS,
+    SUGGESTED_SIZES,
+    Candidate,
+    default_probe_seconds,
+    nearby,
+    probe,
+    suggestions,
+)
 
 log = logging.getLogger(__name__)
-
-PROBE_CANDIDATE_SECONDS = 10.0
-"""The probe's time for one candidate task: the tasks it finds are those a minute's search finds
-quickly, and it offers the time it took."""
 
 
 def probe_budget(args: argparse.Namespace) -> float:
@@ -33,7 +38,7 @@ def suggested_pieces(grid, args: argparse.Namespace) -> int | None:
     budget = probe_budget(args)
     if budget <= 0:
         raise RLLockError("give --pieces: without it solve tries piece counts, which --probe 0 turns off")
-    seconds = min(PROBE_CANDIDATE_SECONDS, budget)
+    seconds = min(SUGGEST_SECONDS, budget)
     log.info(
         "no --pieces: trying pieces of %s voxels, %g s each, for up to %.0f s",
         ", ".join(map(str, SUGGESTED_SIZES)),
@@ -108,7 +113,7 @@ def offer(task: Task, args: argparse.Namespace) -> str:
     if budget <= 0:
         return fallback
     thicken = THIN_WIDTH if thin_parts(task, args) is not None else None
-    seconds = min(PROBE_CANDIDATE_SECONDS, budget)
+    seconds = min(NEARBY_SECONDS, budget)
     log.info("looking for a task near it that works, for up to %.0f s (--probe 0 skips this)", budget)
     try:
         found = probe(

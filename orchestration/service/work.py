@@ -27,7 +27,6 @@ from rllock.orchestration.service.request import JobSpec
 SERVICE, MODEL = "Service", "Model"  # the deployments' names in the application
 GENERATE_BATCH = 8  # lockstep episodes of a generate job: one network request carries them all
 PROGRESS_EVERY_S = 0.5
-PROBE_CANDIDATE_S = 10.0  # a failed solve job's probe: seconds per task tried
 
 Report = Callable[[dict], None]
 EvaluateFor = Callable[[Task], tuple[Any, list]]
@@ -129,7 +128,13 @@ class NothingFound(RLLockError):
 def _suggested(spec: JobSpec, grid: np.ndarray, report: Report) -> int:
     """A solve job's K when it names none: the first of `rllock.search.probe.suggestions` (pieces of about
     20 voxels, then larger) that this search (its seed) finds an assembly for, on the job's one core."""
-    from rllock.search.probe import SUGGESTED_SIZES, default_probe_seconds, probe, suggestions
+    from rllock.search.probe import (
+        SUGGEST_SECONDS,
+        SUGGESTED_SIZES,
+        default_probe_seconds,
+        probe,
+        suggestions,
+    )
 
     budget = default_probe_seconds(spec.time_limit)
     report({"placed": -1, "pieces": None, "choosing": round(budget)})
@@ -138,7 +143,7 @@ def _suggested(spec: JobSpec, grid: np.ndarray, report: Report) -> int:
         spec.removal,
         suggestions(int(grid.sum())),
         seed=spec.seed,
-        seconds=min(PROBE_CANDIDATE_S, budget),
+        seconds=min(SUGGEST_SECONDS, budget),
         budget=budget,
         workers=1,
     )
@@ -154,7 +159,7 @@ def _offer(spec: JobSpec, task: Task, report: Report) -> dict | None:
     """The nearest task that works (`rllock.search.probe`, on this job's one core, for
     `default_probe_seconds`): what `_solve` offers when its search found nothing."""
     from rllock.core.thickness import THIN_WIDTH, thin_enough_to_matter
-    from rllock.search.probe import default_probe_seconds, nearby, probe
+    from rllock.search.probe import NEARBY_SECONDS, default_probe_seconds, nearby, probe
 
     budget = default_probe_seconds(spec.time_limit)
     grid = task.topology.grid
@@ -165,7 +170,7 @@ def _offer(spec: JobSpec, task: Task, report: Report) -> dict | None:
         task.removal,
         nearby(task.pieces, task.size, THIN_WIDTH if thin else None),
         seed=spec.seed,
-        seconds=min(PROBE_CANDIDATE_S, budget),
+        seconds=min(NEARBY_SECONDS, budget),
         budget=budget,
         workers=1,
     )

@@ -35,6 +35,13 @@ class Outcome:
     last_size: int
 
 
+SUGGEST_SECONDS = 10.0
+"""A suggestion's time for each K it tries (at least): a K a minute's search finds in seconds."""
+NEARBY_SECONDS = 6.0
+"""A failure's time for each task near it: the nearest that work were found in 1-5 s, and shorter tries
+let a probe reach the tasks a little further off (a figure's thin parts grown)."""
+
+
 def default_probe_seconds(time_limit: float) -> float:
     """A failed search's probe: half its time limit, from 10 s (a nearby task found in a few seconds
     is worth the wait after a short search) to 30 s."""
