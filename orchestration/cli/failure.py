@@ -133,12 +133,13 @@ def offer(task: Task, args: argparse.Namespace) -> str:
     return (
         f"  a task that works: K={c.pieces}{grown}, pieces of {found.piece_size} and the last "
         f"{found.last_size}; this search (seed {args.seed}) found one in {found.seconds:.1f} s:\n"
-        f"    {retry_command(args, c, enough_time(found.seconds or 0.0))}\n"
+        f"    {retry_command(args, c, enough_time(round(found.seconds or 0.0, 1)))}\n"
     )
 
 
 def enough_time(seconds: float) -> float:
-    """A time limit that lets the same search find again what it found in `seconds`, on a busier machine."""
+    """A time limit that lets the same search find again what it found in `seconds` (as shown, to a tenth),
+    on a busier machine."""
     return float(math.ceil(3 * seconds) + 5)
 
 
