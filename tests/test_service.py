@@ -337,8 +337,12 @@ def test_the_web_page_in_headless_chromium(server, tmp_path):
         if shot:
             Path(shot).with_suffix(".failed.png").write_bytes(driver.get_screenshot_as_png())
         offer.click()
+        # Until the new job's end: the page stays in its error phase until the click's job starts.
         WebDriverWait(driver, 120).until(
-            lambda d: d.find_element(By.TAG_NAME, "body").get_attribute("data-phase") in ("assembly", "error")
+            lambda d: (
+                d.find_element(By.ID, "state").text.startswith("solve mario K=61: ")
+                and d.find_element(By.TAG_NAME, "body").get_attribute("data-phase") in ("assembly", "error")
+            )
         )
         state = driver.find_element(By.ID, "state").text
         assert state.startswith("solve mario K=61: a valid assembly") and "verified" in state, state

@@ -208,9 +208,14 @@ def check_request(spec: JobSpec, grid: np.ndarray, limits: Limits) -> JobSpec:
     return spec
 
 
+LATER_FIELDS = ("thicken",)
+"""JobSpec's fields that older servers did not write: job.json holds them only when set, so that an older
+job's file reads and writes back the same."""
+
+
 def spec_json(spec: JobSpec) -> dict:
     """The spec as job.json holds it."""
-    return asdict(spec)
+    return {k: v for k, v in asdict(spec).items() if not (k in LATER_FIELDS and v is None)}
 
 
 def spec_from_json(doc: dict) -> JobSpec:
