@@ -67,6 +67,9 @@ def cluster(monkeypatch) -> Iterator[tuple]:
         "include_dashboard": True,
         "dashboard_host": "127.0.0.1",
         "dashboard_port": port,
+        # Not Ray's fixed default (52365), which a Ray instance of another test (the service's) may hold:
+        # the head's job agent then never starts ("No available agent to submit job", 180 s).
+        "dashboard_agent_listen_port": free_port(),
         # The head declares a silent node dead after 3 missed health checks a second apart, not Ray's
         # default 5 of 3 s each: the same path, in a test-sized time.
         "_system_config": {"health_check_period_ms": 1000, "health_check_failure_threshold": 3},
