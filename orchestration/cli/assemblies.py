@@ -400,9 +400,9 @@ def _add_checks(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         default=None,
         metavar="SECONDS",
-        help="when the search finds nothing: search tasks near it (another K, thin parts grown) on the "
-        "free cores for at most this long and offer the nearest that works (default: half of "
-        "--time-limit, from 10 to 30; 0: offer none)",
+        help="the seconds of short searches on the free cores: without --pieces, of the K to take; when "
+        "the search finds nothing, of tasks near it (another K, thin parts grown), to offer the nearest "
+        "that works (default: half of --time-limit, from 10 to 30; 0: none)",
     )
     p.set_defaults(func=cmd_solve)
 
