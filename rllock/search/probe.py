@@ -94,7 +94,7 @@ def probe(
     within `seconds` (more where the budget leaves more to each), trying `workers` at once (default: the
     cores this process may use; one: in this process) for at most `budget` seconds in all; None when
     none of those tried did."""
-    workers = workers or len(os.sched_getaffinity(0))
+    workers = workers or usable_cores()
     seconds = max(seconds, min(budget, budget / math.ceil(max(len(candidates), 1) / workers)))
     rounds = max(1, int(budget // max(seconds, 1e-3)))
     todo = candidates[: rounds * workers]
@@ -117,6 +117,13 @@ def probe(
         pool.terminate()  # the other candidates' searches, still running, are not needed
         pool.join()
     return None
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the system has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def _nearest_found(pending: list) -> Outcome | None:
