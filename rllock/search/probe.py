@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import signal
 import time
 from dataclasses import dataclass
 
@@ -103,7 +104,9 @@ def probe(
     if workers == 1:  # one at a time here: no process to start (a service's job has one core)
         tried = (_try((grid, removal, c, seed, seconds)) for c in todo)
         return next((o for o in tried if o.seconds is not None), None)
-    pool = multiprocessing.get_context("spawn").Pool(min(workers, len(todo)))
+    # Ctrl-C is the caller's to handle: workers that took it would end their searches early, which
+    # reads as no assembly found.
+    pool = multiprocessing.get_context("spawn").Pool(min(workers, len(todo)), _ignore_sigint)
     try:
         for start in range(0, len(todo), workers):
             pending = [
@@ -117,6 +120,10 @@ def probe(
         pool.terminate()  # the other candidates' searches, still running, are not needed
         pool.join()
     return None
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def usable_cores() -> int:
