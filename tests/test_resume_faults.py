@@ -128,7 +128,7 @@ def test_a_killed_actor_restarts_a_killed_run_resumes_past_a_corrupted_checkpoin
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | {"RAY_TMPDIR": ray_tmp}
     # Long enough for learner steps on a slow CI machine, Ray's start and the actor's compilation
     # included (the learner waits for new episodes).
-    minutes = 0.5
+    minutes = 0.75
     began = time.monotonic()
     try:
         done = subprocess.run(
