@@ -18,9 +18,8 @@ from rllock.search.probe import (
     SUGGESTED_SIZES,
     Candidate,
     default_probe_seconds,
-    nearby,
-    probe,
-    suggestions,
+    nearest_that_works,
+    suggest,
 )
 
 log = logging.getLogger(__name__)
@@ -38,16 +37,13 @@ def suggested_pieces(grid, args: argparse.Namespace) -> int | None:
     budget = probe_budget(args)
     if budget <= 0:
         raise RLLockError("give --pieces: without it solve tries piece counts, which --probe 0 turns off")
-    seconds = min(SUGGEST_SECONDS, budget)
     log.info(
         "no --pieces: trying pieces of %s voxels, %g s each, for up to %.0f s",
         ", ".join(map(str, SUGGESTED_SIZES)),
-        seconds,
+        min(SUGGEST_SECONDS, budget),
         budget,
     )
-    found = probe(
-        grid, args.removal, suggestions(int(grid.sum())), seed=args.seed, seconds=seconds, budget=budget
-    )
+    found = suggest(grid, args.removal, seed=args.seed, budget=budget)
     if found is not None:
         log.info(
             "K=%d: pieces of %d, the last %d; this search found one in %.1f s",
@@ -105,28 +101,25 @@ def nothing_found(task: Task, args: argparse.Namespace, stats) -> str:
 def offer(task: Task, args: argparse.Namespace) -> str:
     """The nearest task that works, found by a probe of --probe seconds with the same seed, as a command
     to run; else what to try."""
-    from rllock.core.thickness import THIN_WIDTH
-
     budget = probe_budget(args)
     more = f"more time (--time-limit {2 * args.time_limit:g})"
     fallback = "  " + advice(task, fits_general=general_serves(task), more=more) + "\n"
     if budget <= 0:
         return fallback
-    thicken = THIN_WIDTH if thin_parts(task, args) is not None else None
-    seconds = min(NEARBY_SECONDS, budget)
     log.info("looking for a task near it that works, for up to %.0f s (--probe 0 skips this)", budget)
     try:
-        found = probe(
+        found = nearest_that_works(
             task.topology.grid,
             task.removal,
-            nearby(task.pieces, task.size, thicken),
+            task.pieces,
+            grown=args.thicken is not None,
             seed=args.seed,
-            seconds=seconds,
             budget=budget,
         )
     except KeyboardInterrupt:
         return fallback
     if found is None:
+        seconds = min(NEARBY_SECONDS, budget)
         return f"  no task near it found an assembly within {seconds:g} s either;\n" + fallback
     c = found.candidate
     grown = "" if c.thicken is None else f" on the shape with its thin parts grown (--thicken {c.thicken})"

@@ -128,25 +128,11 @@ class NothingFound(RLLockError):
 def _suggested(spec: JobSpec, grid: np.ndarray, report: Report) -> int:
     """A solve job's K when it names none: the first of `rllock.search.probe.suggestions` (pieces of about
     20 voxels, then larger) that this search (its seed) finds an assembly for, on the job's one core."""
-    from rllock.search.probe import (
-        SUGGEST_SECONDS,
-        SUGGESTED_SIZES,
-        default_probe_seconds,
-        probe,
-        suggestions,
-    )
+    from rllock.search.probe import SUGGESTED_SIZES, default_probe_seconds, suggest
 
     budget = default_probe_seconds(spec.time_limit)
     report({"placed": -1, "pieces": None, "choosing": round(budget)})
-    found = probe(
-        grid,
-        spec.removal,
-        suggestions(int(grid.sum())),
-        seed=spec.seed,
-        seconds=min(SUGGEST_SECONDS, budget),
-        budget=budget,
-        workers=1,
-    )
+    found = suggest(grid, spec.removal, seed=spec.seed, budget=budget, workers=1)
     if found is None:
         raise NothingFound(
             f"no piece count for {spec.shape} with pieces of {SUGGESTED_SIZES[0]} to {SUGGESTED_SIZES[-1]} "
@@ -158,19 +144,16 @@ def _suggested(spec: JobSpec, grid: np.ndarray, report: Report) -> int:
 def _offer(spec: JobSpec, task: Task, report: Report) -> dict | None:
     """The nearest task that works (`rllock.search.probe`, on this job's one core, for
     `default_probe_seconds`): what `_solve` offers when its search found nothing."""
-    from rllock.core.thickness import THIN_WIDTH, thin_enough_to_matter
-    from rllock.search.probe import NEARBY_SECONDS, default_probe_seconds, nearby, probe
+    from rllock.search.probe import default_probe_seconds, nearest_that_works
 
     budget = default_probe_seconds(spec.time_limit)
-    grid = task.topology.grid
-    thin = spec.thicken is None and thin_enough_to_matter(grid, task.piece_size) is not None
     report({"placed": -1, "pieces": task.pieces, "probe": round(budget)})
-    found = probe(
-        grid,
+    found = nearest_that_works(
+        task.topology.grid,
         task.removal,
-        nearby(task.pieces, task.size, THIN_WIDTH if thin else None),
+        task.pieces,
+        grown=spec.thicken is not None,
         seed=spec.seed,
-        seconds=min(NEARBY_SECONDS, budget),
         budget=budget,
         workers=1,
     )

@@ -81,6 +81,38 @@ def nearby(pieces: int, size: int, thicken: int | None = None) -> list[Candidate
     return found
 
 
+def suggest(
+    grid: np.ndarray, removal: str, *, seed: int, budget: float, workers: int | None = None
+) -> Outcome | None:
+    """The first of `suggestions` for `grid` that the solver with `seed` finds an assembly for: the K a
+    shape is given when it names none (`probe` for `budget` seconds, SUGGEST_SECONDS a K at least)."""
+    candidates = suggestions(int(np.asarray(grid).sum()))
+    seconds = min(SUGGEST_SECONDS, budget)
+    return probe(grid, removal, candidates, seed=seed, seconds=seconds, budget=budget, workers=workers)
+
+
+def nearest_that_works(
+    grid: np.ndarray,
+    removal: str,
+    pieces: int,
+    *,
+    grown: bool,
+    seed: int,
+    budget: float,
+    workers: int | None = None,
+) -> Outcome | None:
+    """The nearest task to K = `pieces` on `grid` (`nearby`) that the solver with `seed` finds an
+    assembly for: another K, or, when the shape has thin parts worth growing and was not `grown`
+    already, the same K on it grown (`probe` for `budget` seconds, NEARBY_SECONDS a task at least)."""
+    from rllock.core.thickness import THIN_WIDTH, thin_enough_to_matter
+
+    size = int(np.asarray(grid).sum())
+    thin = not grown and thin_enough_to_matter(grid, size // pieces) is not None
+    candidates = nearby(pieces, size, THIN_WIDTH if thin else None)
+    seconds = min(NEARBY_SECONDS, budget)
+    return probe(grid, removal, candidates, seed=seed, seconds=seconds, budget=budget, workers=workers)
+
+
 def probe(
     grid: np.ndarray,
     removal: str,
