@@ -93,6 +93,7 @@ def test_shapes_preview_and_openapi(server):
     from rllock.core.thickness import thicken
 
     assert shapes["desia-bunny"]["thin"] == 103 and shapes["cube4"]["thin"] == 0
+    assert shapes["desia-bunny"]["thin_matters"] and not shapes["cube4"]["thin_matters"]
     grown = server.post("/api/shape", data={"shape": "desia-bunny", "thicken": "3"}).json()
     assert grown["N"] == int(thicken(load_shape("desia-bunny"), 3).sum()) > 966 and grown["thin"] == 0
     r = server.post("/api/shape", data={"shape": "desia-bunny", "thicken": "1"})

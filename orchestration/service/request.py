@@ -148,17 +148,21 @@ def sensible_pieces(n: int) -> dict[str, int]:
 
 
 def shape_summary(label: str, grid: np.ndarray) -> dict:
-    """A shape as the page lists it: name, voxel count N, dimensions, the K that make sense, and how many
-    voxels lie in thin parts (arms, legs, ears: `rllock.core.thickness`), where growing them can help."""
-    from rllock.core.thickness import thin_voxels
+    """A shape as the page lists it: name, voxel count N, dimensions, the K that make sense, how many
+    voxels lie in thin parts (arms, legs, ears: `rllock.core.thickness`), and whether they are enough for
+    growing them to help, with the pieces a solve picks first."""
+    from rllock.core.thickness import thin_matters, thin_voxels
+    from rllock.search.probe import SUGGESTED_SIZES
 
     n = int(grid.sum())
+    thin = int(thin_voxels(grid).sum())
     return {
         "name": label,
         "N": n,
         "dimensions": list(grid.shape),
         "pieces": sensible_pieces(n),
-        "thin": int(thin_voxels(grid).sum()),
+        "thin": thin,
+        "thin_matters": thin_matters(thin, n, SUGGESTED_SIZES[0]),
     }
 
 

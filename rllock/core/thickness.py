@@ -45,7 +45,12 @@ THIN_SHARE = 0.05
 voxels, or a piece's worth."""
 
 
+def thin_matters(thin: int, size: int, piece_size: int) -> bool:
+    """Whether `thin` thin voxels of a shape of `size` are worth a word, with pieces of `piece_size`."""
+    return thin >= max(piece_size, THIN_SHARE * size)
+
+
 def thin_enough_to_matter(grid: np.ndarray, piece_size: int) -> int | None:
     """How many of `grid`'s voxels are thin (`thin_voxels`), when that is worth saying; else None."""
     thin = int(thin_voxels(grid).sum())
-    return thin if thin >= max(piece_size, THIN_SHARE * int(grid.sum())) else None
+    return thin if thin_matters(thin, int(grid.sum()), piece_size) else None

@@ -164,7 +164,7 @@ async function preview() {
       `${info.name}: N = ${info.N} voxels, ${info.dimensions.join(" × ")}. K can be 2 to ${k.max}; ` +
       `pieces of 4 to 40 voxels: K = ${k.low} to ${k.high}. Left blank, the solver picks K: pieces of about ` +
       "20 voxels, or larger where those take it more than a few seconds." +
-      (!$("thicken").value && info.thin >= Math.max(info.N / 20, 20) ?
+      (!$("thicken").value && info.thin_matters ?
         ` ${info.thin} voxels lie in thin parts (arms, legs, ears), where pieces have little room: ` +
         "growing them to 3 voxels, or larger pieces, helps." : "");
     $("pieces").max = k.max;
@@ -263,7 +263,7 @@ function showOffer(offer) {
     const thicken = offer.thicken ? String(offer.thicken) : "";
     if ($("thicken").value !== thicken) {
       $("thicken").value = thicken;
-      await preview(); // the grown shape on view; it resets K to the suggested one
+      await preview(); // the grown shape on view; it leaves K blank
     }
     $("pieces").value = offer.pieces;
     // Time enough for the same search on a busier server: it found it in offer.seconds.
